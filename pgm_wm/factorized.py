@@ -137,6 +137,22 @@ class FactorizedBelief:
             torch.where(k, self.cov_side, other.cov_side),
         )
 
+    @classmethod
+    def stack(cls, beliefs: Sequence["FactorizedBelief"], dim: int = -2) -> "FactorizedBelief":
+        """Stack beliefs along a new batch axis (``dim`` counts with the event axis last, so the
+        default ``-2`` gives ``mean: (..., T, 2m)`` for a list of ``T`` beliefs)."""
+        if len(beliefs) == 0:
+            raise ValueError("beliefs: need at least one belief to stack")
+        if dim >= 0:
+            raise ValueError("dim: use a negative dimension (counted from the event axis)")
+        return cls(*(torch.stack([getattr(b, f) for b in beliefs], dim=dim)
+                     for f in ("mean", "var_upper", "var_lower", "cov_side")))
+
+    def at(self, index: int) -> "FactorizedBelief":
+        """Select one element along the time axis of a stacked belief (``mean: (..., T, 2m)``)."""
+        return FactorizedBelief(self.mean[..., index, :], self.var_upper[..., index, :],
+                                self.var_lower[..., index, :], self.cov_side[..., index, :])
+
     def detach(self) -> "FactorizedBelief":
         return FactorizedBelief(
             self.mean.detach(), self.var_upper.detach(), self.var_lower.detach(), self.cov_side.detach()

@@ -1,0 +1,314 @@
+r"""The Recurrent Kalman Network (Chapter 3): a Kalman filter in a learned latent space.
+
+An RKN is ``encoder -> [update, predict]* -> decoder``:
+
+* the **encoder** maps an observation :math:`o_t` to a latent observation :math:`w_t\in\mathbb R^m`
+  and its variance :math:`\sigma^{obs}_t` (Eq. rkn-encoder);
+* the **update** is the exact factorized Kalman update with :math:`H=[I,0]`
+  (:func:`pgm_wm.factorized.factorized_update`, Eq. rkn-update); a missing observation skips it;
+* the **predict** step uses a locally linear transition :math:`A_t = \sum_k \alpha_k(z_t^+) A^{(k)}`
+  made of band-limited blocks (Eq. rkn-transition) and learned transition noise, via
+  :func:`pgm_wm.factorized.factorized_predict` (Eq. rkn-predict); later chapters add more
+  independent causes to this predict step (an action term, a latent task);
+* the **decoder** maps the belief to a Gaussian over the target (Eq. rkn-decoder).
+
+Positive quantities use ``elu(x) + 1`` (:func:`elup1`), which is smooth, equals ``x + 1`` for
+``x > 0`` and decays to 0 (never reaching it) for ``x -> -inf``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from ._checks import check_last_dims, check_mask, check_tensor
+from .factorized import FactorizedBelief, factorized_predict, factorized_update
+
+__all__ = [
+    "elup1",
+    "mlp",
+    "band_mask",
+    "LocallyLinearTransition",
+    "ObservationEncoder",
+    "BeliefDecoder",
+    "FilterOutput",
+    "RKN",
+]
+
+CausesFn = Callable[[int, FactorizedBelief], Sequence[FactorizedBelief]]
+
+
+def elup1(x: Tensor) -> Tensor:
+    """``elu(x) + 1``: a smooth map onto :math:`(0, \\infty)` used for all learned variances."""
+    return F.elu(x) + 1.0
+
+
+def mlp(in_dim: int, hidden: Sequence[int], out_dim: int, activation: type[nn.Module] = nn.ReLU) -> nn.Sequential:
+    """A plain multilayer perceptron ``in_dim -> hidden... -> out_dim`` (no output activation)."""
+    layers: list[nn.Module] = []
+    d = in_dim
+    for h in hidden:
+        layers += [nn.Linear(d, h), activation()]
+        d = h
+    layers.append(nn.Linear(d, out_dim))
+    return nn.Sequential(*layers)
+
+
+def band_mask(m: int, bandwidth: int) -> Tensor:
+    """Boolean ``(m, m)`` mask of a band matrix: entry ``(i, j)`` is free iff ``|i - j| <= bandwidth``."""
+    if m <= 0 or bandwidth < 0:
+        raise ValueError(f"bandwidth: need m > 0 and bandwidth >= 0, got m={m}, bandwidth={bandwidth}")
+    idx = torch.arange(m)
+    return (idx[:, None] - idx[None, :]).abs() <= bandwidth
+
+
+def _inv_softplus(y: float) -> float:
+    return y + math.log(-math.expm1(-y))
+
+
+class LocallyLinearTransition(nn.Module):
+    r"""Locally linear transition model, Eq. (rkn-transition):
+
+    .. math:: A_t = I + \sum_{k=1}^K \alpha_k(z_t^+)\,A^{(k)},\qquad
+              \alpha(z) = \mathrm{softmax}(W z + c),
+
+    each :math:`A^{(k)} = [[A^{(k)}_{11}, A^{(k)}_{12}], [A^{(k)}_{21}, A^{(k)}_{22}]]` with band
+    blocks of half-width ``bandwidth``. Initialization: :math:`A^{(k)}_{11} = A^{(k)}_{22} = 0`,
+    :math:`A^{(k)}_{12} = c\,I`, :math:`A^{(k)}_{21} = -c\,I` with ``coupling`` :math:`c = 0.2`, so the
+    initial :math:`A = [[I, cI], [-cI, I]]` — the Euler step of a spring-damper-like oscillator
+    coupling the observed half to the memory half.
+
+    ``num_basis = 1`` gives a constant (state-independent) linear transition; ``bandwidth = 0``
+    gives diagonal blocks, for which the factorized predict is exact.
+
+    The transition noise :math:`[q^u; q^l]` is a learned vector, positive via softplus,
+    initialized to ``trans_var_init``.
+    """
+
+    def __init__(
+        self,
+        latent_obs_dim: int,
+        num_basis: int = 15,
+        bandwidth: int = 3,
+        trans_var_init: float = 0.1,
+        coupling: float = 0.2,
+        add_identity: bool = True,
+    ) -> None:
+        super().__init__()
+        m, K = latent_obs_dim, num_basis
+        if m <= 0 or K <= 0:
+            raise ValueError(f"num_basis: need latent_obs_dim > 0 and num_basis > 0, got {m}, {K}")
+        if trans_var_init <= 0:
+            raise ValueError(f"trans_var_init: must be positive, got {trans_var_init}")
+        self.latent_obs_dim, self.num_basis, self.bandwidth = m, K, bandwidth
+        self.add_identity = add_identity
+        eye = torch.eye(m).expand(K, m, m)
+        self.basis_11 = nn.Parameter(torch.zeros(K, m, m))
+        self.basis_12 = nn.Parameter(coupling * eye.clone())
+        self.basis_21 = nn.Parameter(-coupling * eye.clone())
+        self.basis_22 = nn.Parameter(torch.zeros(K, m, m))
+        self.register_buffer("band", band_mask(m, bandwidth).to(torch.get_default_dtype()), persistent=False)
+        self.coefficient_net = nn.Linear(2 * m, K) if K > 1 else None
+        self.trans_var_raw = nn.Parameter(torch.full((2 * m,), _inv_softplus(trans_var_init)))
+
+    @property
+    def trans_var(self) -> Tensor:
+        """Transition noise variances :math:`[q^u; q^l]`: ``(2m,)``, positive."""
+        return F.softplus(self.trans_var_raw)
+
+    def coefficients(self, mean: Tensor) -> Tensor:
+        """Mixing weights :math:`\\alpha(z)`: ``(..., K)``, non-negative and summing to one."""
+        if self.coefficient_net is None:
+            return torch.ones(*mean.shape[:-1], 1, dtype=mean.dtype, device=mean.device)
+        return torch.softmax(self.coefficient_net(mean), dim=-1)
+
+    def blocks(self, mean: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The four ``(..., m, m)`` blocks of :math:`A_t` for posterior means ``(..., 2m)``.
+
+        With ``num_basis == 1`` the blocks are ``(m, m)`` and broadcast over the batch.
+        """
+        band = self.band.to(self.basis_11.dtype)
+        bases = [b * band for b in (self.basis_11, self.basis_12, self.basis_21, self.basis_22)]
+        if self.coefficient_net is None:
+            out = [b[0] for b in bases]
+        else:
+            alpha = self.coefficients(mean)
+            out = [torch.einsum("...k,kij->...ij", alpha, b) for b in bases]
+        if self.add_identity:
+            eye = torch.eye(self.latent_obs_dim, dtype=out[0].dtype, device=out[0].device)
+            out[0] = out[0] + eye
+            out[3] = out[3] + eye
+        return out[0], out[1], out[2], out[3]
+
+    def dense_matrix(self, mean: Tensor) -> Tensor:
+        """:math:`A_t` as a dense ``(..., 2m, 2m)`` matrix (for tests and plots)."""
+        a11, a12, a21, a22 = self.blocks(mean)
+        top = torch.cat(torch.broadcast_tensors(a11, a12), dim=-1)
+        bot = torch.cat(torch.broadcast_tensors(a21, a22), dim=-1)
+        return torch.cat([top, bot], dim=-2)
+
+    def forward(self, post: FactorizedBelief, causes: Sequence[FactorizedBelief] = ()) -> FactorizedBelief:
+        """Predict step, Eq. (rkn-predict): prior of the next step from the posterior ``post``."""
+        a11, a12, a21, a22 = self.blocks(post.mean)
+        return factorized_predict(post, a11, a12, a21, a22, self.trans_var, causes)
+
+
+class ObservationEncoder(nn.Module):
+    r"""Observation encoder, Eq. (rkn-encoder): :math:`o_t \mapsto (w_t, \sigma^{obs}_t)`.
+
+    ``trunk`` (default: an MLP with ``hidden`` units) maps ``(..., obs_dim)`` to features; two
+    linear heads give :math:`w_t` and :math:`\sigma^{obs}_t = \mathrm{elu}(\cdot)+1`. With
+    ``normalize_w`` the latent observation is L2-normalized, as in the original RKN; this keeps the
+    latent scale fixed so that the variances carry the confidence.
+    For images, pass a convolutional ``trunk`` and its ``feature_dim``.
+    """
+
+    def __init__(
+        self,
+        obs_dim: int,
+        latent_obs_dim: int,
+        hidden: Sequence[int] = (64,),
+        trunk: nn.Module | None = None,
+        feature_dim: int | None = None,
+        normalize_w: bool = False,
+        activation: type[nn.Module] = nn.ReLU,
+    ) -> None:
+        super().__init__()
+        if trunk is None:
+            layers: list[nn.Module] = []
+            d = obs_dim
+            for h in hidden:
+                layers += [nn.Linear(d, h), activation()]
+                d = h
+            trunk = nn.Sequential(*layers)
+            feature_dim = d
+        elif feature_dim is None:
+            raise ValueError("feature_dim: required when a custom trunk is given")
+        self.obs_dim, self.latent_obs_dim = obs_dim, latent_obs_dim
+        self.trunk = trunk
+        self.w_head = nn.Linear(feature_dim, latent_obs_dim)
+        self.var_head = nn.Linear(feature_dim, latent_obs_dim)
+        self.normalize_w = normalize_w
+
+    def forward(self, obs: Tensor) -> tuple[Tensor, Tensor]:
+        """``obs: (..., obs_dim)`` -> ``(w, w_var)`` each ``(..., m)``."""
+        check_last_dims("obs", obs, (self.obs_dim,))
+        h = self.trunk(obs)
+        w = self.w_head(h)
+        if self.normalize_w:
+            w = F.normalize(w, p=2, dim=-1, eps=1e-8)
+        return w, elup1(self.var_head(h))
+
+
+class BeliefDecoder(nn.Module):
+    r"""Gaussian decoder, Eq. (rkn-decoder): mean from the belief mean, variance from the belief's
+    variances :math:`[\sigma^u, \sigma^l, \sigma^s]` (positive via ``elu + 1``)."""
+
+    def __init__(
+        self,
+        latent_obs_dim: int,
+        out_dim: int,
+        hidden: Sequence[int] = (64,),
+        var_hidden: Sequence[int] = (64,),
+        activation: type[nn.Module] = nn.ReLU,
+    ) -> None:
+        super().__init__()
+        self.out_dim = out_dim
+        self.mean_net = mlp(2 * latent_obs_dim, hidden, out_dim, activation)
+        self.var_net = mlp(3 * latent_obs_dim, var_hidden, out_dim, activation)
+
+    def forward(self, belief: FactorizedBelief) -> tuple[Tensor, Tensor]:
+        """Returns ``(mean, var)`` each ``(..., out_dim)``."""
+        v = torch.cat([belief.var_upper, belief.var_lower, belief.cov_side], dim=-1)
+        return self.mean_net(belief.mean), elup1(self.var_net(v))
+
+
+@dataclass(frozen=True)
+class FilterOutput:
+    """Beliefs of a filter run over ``T`` steps (every field ``(B, T, ...)``).
+
+    Attributes:
+        prior: :math:`p(z_t\\mid w_{<t})`, the belief before the update at step ``t``.
+        posterior: :math:`p(z_t\\mid w_{\\le t})`, after the update (equal to ``prior`` where masked).
+        predicted: :math:`p(z_{t+1}\\mid w_{\\le t})`, the prior of the next step (``prior`` shifted by
+            one, plus the final one-step-ahead prediction); decode this for prediction tasks.
+    """
+
+    prior: FactorizedBelief
+    posterior: FactorizedBelief
+    predicted: FactorizedBelief
+
+
+class RKN(nn.Module):
+    """Recurrent Kalman Network: ``encoder -> [update, predict]* -> decoder``.
+
+    :meth:`filter` is the recurrent core and takes an optional ``causes_fn(t, posterior)``
+    returning extra independent causes for the predict step from ``t`` to ``t + 1`` (an action
+    term in Chapter 4, a latent task in Chapter 5). :meth:`forward` is the filtering model of
+    Chapter 3: it decodes posteriors.
+    """
+
+    def __init__(
+        self,
+        encoder: nn.Module,
+        transition: LocallyLinearTransition,
+        decoder: nn.Module,
+        init_var: float = 10.0,
+    ) -> None:
+        super().__init__()
+        if init_var <= 0:
+            raise ValueError(f"init_var: must be positive, got {init_var}")
+        self.encoder, self.transition, self.decoder = encoder, transition, decoder
+        self.latent_obs_dim = transition.latent_obs_dim
+        self.init_var = init_var
+
+    def initial_belief(self, batch_shape: Sequence[int], like: Tensor) -> FactorizedBelief:
+        """``N(0, init_var · I)`` with zero side covariance, dtype/device of ``like``."""
+        return FactorizedBelief.isotropic(batch_shape, self.latent_obs_dim, self.init_var,
+                                          dtype=like.dtype, device=like.device)
+
+    def filter(
+        self,
+        w: Tensor,
+        w_var: Tensor,
+        mask: Tensor | None = None,
+        causes_fn: CausesFn | None = None,
+        init: FactorizedBelief | None = None,
+    ) -> FilterOutput:
+        """Run update/predict over latent observations ``w, w_var: (B, T, m)``.
+
+        ``mask: (B, T)`` bool, True = observed (False: posterior = prior). ``init`` defaults to
+        :meth:`initial_belief`.
+        """
+        check_tensor("w", w, 3)
+        B, T, m = w.shape
+        if m != self.latent_obs_dim:
+            raise ValueError(f"w: expected latent size {self.latent_obs_dim}, got {m}")
+        check_last_dims("w_var", w_var, (T, m))
+        if mask is not None:
+            mask = check_mask("mask", mask, (B, T))
+        prior = self.initial_belief((B,), w) if init is None else init
+        priors, posts, preds = [], [], []
+        for t in range(T):
+            post = factorized_update(prior, w[:, t], w_var[:, t],
+                                     None if mask is None else mask[:, t], validate=False)
+            causes = causes_fn(t, post) if causes_fn is not None else ()
+            nxt = self.transition(post, causes)
+            priors.append(prior)
+            posts.append(post)
+            preds.append(nxt)
+            prior = nxt
+        return FilterOutput(FactorizedBelief.stack(priors), FactorizedBelief.stack(posts),
+                            FactorizedBelief.stack(preds))
+
+    def forward(self, obs: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Filtering: ``obs: (B, T, obs_dim)`` -> decoded posterior ``(mean, var)`` per step."""
+        check_tensor("obs", obs, 3)
+        w, w_var = self.encoder(obs)
+        out = self.filter(w, w_var, mask)
+        return self.decoder(out.posterior)
