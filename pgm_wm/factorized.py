@@ -31,7 +31,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from ._checks import check_last_dims, check_mask, check_positive, check_tensor
+from ._checks import check_last_dims, check_mask, check_nonnegative, check_positive, check_tensor
 from .gaussian import Gaussian
 
 __all__ = [
@@ -39,6 +39,7 @@ __all__ = [
     "block_inverse",
     "factorized_update",
     "factorized_predict",
+    "factorized_predict_from_matrix",
     "linear_cause",
     "known_input",
 ]
@@ -153,6 +154,14 @@ class FactorizedBelief:
         return FactorizedBelief(self.mean[..., index, :], self.var_upper[..., index, :],
                                 self.var_lower[..., index, :], self.cov_side[..., index, :])
 
+    def drop_side(self) -> "FactorizedBelief":
+        """The same belief with ``cov_side`` set to zero: a purely diagonal covariance.
+
+        Used by the diagonal-only ablation of Chapter 3 (``RKN(..., diagonal_only=True)``). With
+        :math:`\sigma^s = 0` the update, Eq. (rkn-update), leaves the lower half untouched.
+        """
+        return FactorizedBelief(self.mean, self.var_upper, self.var_lower, torch.zeros_like(self.cov_side))
+
     def detach(self) -> "FactorizedBelief":
         return FactorizedBelief(
             self.mean.detach(), self.var_upper.detach(), self.var_lower.detach(), self.cov_side.detach()
@@ -215,6 +224,8 @@ def factorized_update(
         mask: ``(...)`` bool, True = observed. Where False the posterior equals the prior.
         validate: check ``w_var > 0`` (set False inside training loops to avoid a host sync).
     """
+    if not isinstance(belief, FactorizedBelief):
+        raise ValueError(f"belief: expected a FactorizedBelief, got {type(belief).__name__}")
     m = belief.latent_obs_dim
     check_last_dims("w", w, (m,))
     check_last_dims("w_var", w_var, (m,))
@@ -274,6 +285,7 @@ def factorized_predict(
     A22: Tensor,
     trans_var: Tensor,
     causes: Sequence[FactorizedBelief] = (),
+    validate: bool = True,
 ) -> FactorizedBelief:
     r"""Predict step for a 2×2-block transition :math:`A = [[A_{11}, A_{12}], [A_{21}, A_{22}]]`,
     Eq. (rkn-predict), plus independent additive causes.
@@ -294,19 +306,62 @@ def factorized_predict(
     are diagonal; otherwise the off-diagonals inside each block are dropped.
 
     Shapes: ``A11..A22: (..., m, m)``; ``trans_var`` = :math:`[q^u; q^l]`: ``(..., 2m)``, >= 0.
+    ``validate`` checks ``trans_var >= 0`` (set False inside training loops to avoid a host sync);
+    shapes are always checked.
     """
+    if not isinstance(belief, FactorizedBelief):
+        raise ValueError(f"belief: expected a FactorizedBelief, got {type(belief).__name__}")
     m = belief.latent_obs_dim
     for name, blk in (("A11", A11), ("A12", A12), ("A21", A21), ("A22", A22)):
         check_last_dims(name, blk, (m, m))
     check_last_dims("trans_var", trans_var, (2 * m,))
-    mv = lambda M, v: (M @ v.unsqueeze(-1)).squeeze(-1)  # noqa: E731
-    zu, zl = belief.mean_upper, belief.mean_lower
-    su, sl, ss = belief.var_upper, belief.var_lower, belief.cov_side
-    mean = torch.cat([mv(A11, zu) + mv(A12, zl), mv(A21, zu) + mv(A22, zl)], dim=-1)
-    var_u = mv(A11 * A11, su) + 2.0 * mv(A11 * A12, ss) + mv(A12 * A12, sl) + trans_var[..., :m]
-    var_l = mv(A21 * A21, su) + 2.0 * mv(A21 * A22, ss) + mv(A22 * A22, sl) + trans_var[..., m:]
-    side = mv(A21 * A11, su) + mv(A22 * A11 + A21 * A12, ss) + mv(A22 * A12, sl)
-    out = FactorizedBelief(mean, var_u, var_l, side)
+    if validate:
+        check_nonnegative("trans_var", trans_var)
+    A = torch.cat([torch.cat(torch.broadcast_tensors(A11, A12), dim=-1),
+                   torch.cat(torch.broadcast_tensors(A21, A22), dim=-1)], dim=-2)
+    return _predict_core(belief, A, trans_var, causes)
+
+
+def factorized_predict_from_matrix(
+    belief: FactorizedBelief,
+    A: Tensor,
+    trans_var: Tensor,
+    causes: Sequence[FactorizedBelief] = (),
+    validate: bool = True,
+) -> FactorizedBelief:
+    r""":func:`factorized_predict` with the transition given as one ``(..., 2m, 2m)`` matrix
+    :math:`A = [[A_{11}, A_{12}], [A_{21}, A_{22}]]`; same result, same approximation, Eq. (rkn-predict).
+    """
+    if not isinstance(belief, FactorizedBelief):
+        raise ValueError(f"belief: expected a FactorizedBelief, got {type(belief).__name__}")
+    m = belief.latent_obs_dim
+    check_last_dims("A", A, (2 * m, 2 * m))
+    check_last_dims("trans_var", trans_var, (2 * m,))
+    if validate:
+        check_nonnegative("trans_var", trans_var)
+    return _predict_core(belief, A, trans_var, causes)
+
+
+def _predict_core(
+    belief: FactorizedBelief, A: Tensor, trans_var: Tensor, causes: Sequence[FactorizedBelief]
+) -> FactorizedBelief:
+    """Arithmetic of Eq. (rkn-predict) without input checks; ``A: (..., 2m, 2m)``.
+
+    Uses the structure of :math:`\Sigma` to form :math:`A\Sigma` with elementwise products
+    (column block ``u`` of :math:`A\Sigma` is :math:`A_{:,u}\,\mathrm{diag}(\sigma^u) +
+    A_{:,l}\,\mathrm{diag}(\sigma^s)`, column block ``l`` likewise), then reads off the needed
+    diagonals :math:`(A\Sigma A^\top)_{rr} = \sum_c (A\Sigma)_{rc} A_{rc}` and
+    :math:`(A\Sigma A^\top)_{m+i,\,i} = \sum_c (A\Sigma)_{m+i,c} A_{ic}`. This equals the
+    block-product formulas in :func:`factorized_predict` term by term, in fewer tensor operations.
+    """
+    m = belief.latent_obs_dim
+    mean = (A @ belief.mean.unsqueeze(-1)).squeeze(-1)
+    Au, Al = A[..., :m], A[..., m:]  # columns acting on z^u and on z^l
+    su, sl, ss = (x.unsqueeze(-2) for x in (belief.var_upper, belief.var_lower, belief.cov_side))
+    AS = torch.cat([Au * su + Al * ss, Au * ss + Al * sl], dim=-1)  # A Σ
+    var = (AS * A).sum(-1) + trans_var  # [σu⁻; σl⁻] = diag(A Σ Aᵀ) + [q^u; q^l]
+    side = (AS[..., m:, :] * A[..., :m, :]).sum(-1)  # σs⁻ = diag of the (l, u) block
+    out = FactorizedBelief(mean, var[..., :m], var[..., m:], side)
     for i, c in enumerate(causes):
         if not isinstance(c, FactorizedBelief) or c.latent_obs_dim != m:
             raise ValueError(f"causes[{i}]: expected a FactorizedBelief with m={m}")

@@ -27,8 +27,16 @@ Chapter 1 derives them; every later model is a specialization.
   The Kalman update is this formula applied to the joint above; its gain is
   :math:`K = \Sigma H^\top S^{-1}` with innovation covariance :math:`S = H\Sigma H^\top + R`.
 
-All functions are batched over leading dimensions (``mean: (..., n)``, ``cov: (..., n, n)``),
-differentiable, and work in float32 or float64.
+* **Log-density** — Eq. (gauss-logpdf), and the evidence :math:`\log p(y)` of an observation,
+  Eq. (gauss-evidence), which the Kalman filter sums into the log-likelihood.
+
+All functions are batched over leading dimensions (``mean: (..., n)``, ``cov: (..., n, n)``;
+leading dimensions broadcast), differentiable, and work in float32 or float64.
+
+Implementation note: the private ``_*_core`` functions hold the arithmetic without any input
+checks; the public functions validate their arguments once and then call them. The Kalman
+filter (:mod:`pgm_wm.kalman`) validates a whole sequence once and calls the same cores inside
+its time loop, so there is exactly one implementation of each identity.
 """
 
 from __future__ import annotations
@@ -40,7 +48,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from ._checks import check_last_dims, check_spd, check_tensor
+from ._checks import check_last_dims, check_same_batch, check_spd, check_tensor
 
 __all__ = [
     "Gaussian",
@@ -56,7 +64,13 @@ _LOG_2PI = math.log(2.0 * math.pi)
 
 
 def _sym(m: Tensor) -> Tensor:
+    """Symmetric part ``(M + Mᵀ) / 2`` (removes floating-point asymmetry)."""
     return 0.5 * (m + m.transpose(-1, -2))
+
+
+def _matvec(A: Tensor, x: Tensor) -> Tensor:
+    """``A x`` for ``A: (..., m, n)``, ``x: (..., n)`` with broadcasting -> ``(..., m)``."""
+    return (A @ x.unsqueeze(-1)).squeeze(-1)
 
 
 @dataclass(frozen=True)
@@ -65,7 +79,11 @@ class Gaussian:
 
     Attributes:
         mean: ``(..., n)``
-        cov: ``(..., n, n)``, symmetric positive (semi-)definite.
+        cov: ``(..., n, n)``, symmetric positive (semi-)definite. The leading (batch)
+            dimensions of ``mean`` and ``cov`` must broadcast against each other.
+
+    Construction checks shapes only (cheap); call :meth:`validate` to also check that
+    ``cov`` is positive definite.
     """
 
     mean: Tensor
@@ -75,30 +93,69 @@ class Gaussian:
         check_tensor("mean", self.mean, min_ndim=1)
         n = self.mean.shape[-1]
         check_last_dims("cov", self.cov, (n, n))
+        check_same_batch(("cov", "mean"), (self.cov, self.mean), (2, 1))
 
     @property
     def dim(self) -> int:
+        """Event dimension ``n``."""
         return self.mean.shape[-1]
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        """Broadcast leading shape of ``mean`` and ``cov``."""
+        return torch.broadcast_shapes(self.mean.shape[:-1], self.cov.shape[:-2])
 
     @property
     def var(self) -> Tensor:
         """Marginal variances, the diagonal of ``cov``: ``(..., n)``."""
         return torch.diagonal(self.cov, dim1=-2, dim2=-1)
 
+    @property
+    def std(self) -> Tensor:
+        """Marginal standard deviations: ``(..., n)``."""
+        return self.var.clamp_min(0).sqrt()
+
     def validate(self, name: str = "belief") -> "Gaussian":
         """Check that ``cov`` is symmetric positive definite; raise ``ValueError`` naming ``name``."""
         check_spd(f"{name}.cov", self.cov)
         return self
+
+    def to(self, dtype: torch.dtype) -> "Gaussian":
+        """The same belief with ``mean`` and ``cov`` cast to ``dtype``."""
+        return Gaussian(self.mean.to(dtype), self.cov.to(dtype))
+
+    def expand(self, *batch_shape: int) -> "Gaussian":
+        """Broadcast ``mean`` and ``cov`` to the leading shape ``batch_shape``."""
+        n = self.dim
+        return Gaussian(self.mean.expand(*batch_shape, n), self.cov.expand(*batch_shape, n, n))
+
+    def __getitem__(self, index: object) -> "Gaussian":
+        """Index the batch dimensions, e.g. ``belief[0]`` or ``belief[:, t]``.
+
+        Both tensors are first broadcast to :attr:`batch_shape`, so the index refers to the
+        same batch element in ``mean`` and ``cov``.
+        """
+        b = self.expand(*self.batch_shape)
+        if not isinstance(index, tuple):
+            index = (index,)
+        if any(i is Ellipsis for i in index):
+            raise ValueError("index: Ellipsis is not supported; index the batch dimensions explicitly")
+        return Gaussian(b.mean[index], b.cov[index])
 
     def log_prob(self, x: Tensor) -> Tensor:
         """Log-density :math:`\\log\\mathcal N(x\\mid\\mu,\\Sigma)`, Eq. (gauss-logpdf). Returns ``(...)``."""
         return log_density(x, self.mean, self.cov)
 
     def sample(self, n: int, generator: torch.Generator | None = None) -> Tensor:
-        """Draw ``n`` samples via the Cholesky factor: returns ``(n, ..., dim)``."""
-        chol = torch.linalg.cholesky(_sym(self.cov))
-        eps = torch.randn((n, *self.mean.shape), dtype=self.mean.dtype, generator=generator)
-        return self.mean + (chol @ eps.unsqueeze(-1)).squeeze(-1)
+        """Draw ``n`` samples :math:`\\mu + L\\epsilon` with :math:`LL^\\top = \\Sigma`: returns ``(n, ..., dim)``."""
+        if not isinstance(n, int) or n < 1:
+            raise ValueError(f"n: expected a positive integer, got {n!r}")
+        chol, info = torch.linalg.cholesky_ex(_sym(self.cov))
+        if bool((info != 0).any()):
+            raise ValueError("cov: matrix is not positive definite")
+        shape = (n, *self.batch_shape, self.dim)
+        eps = torch.randn(shape, dtype=self.mean.dtype, device=self.mean.device, generator=generator)
+        return self.mean + _matvec(chol, eps)
 
     def where(self, keep_self: Tensor, other: "Gaussian") -> "Gaussian":
         """Select ``self`` where ``keep_self`` (shape ``(...)``) is True, else ``other``."""
@@ -107,6 +164,181 @@ class Gaussian:
             torch.where(k[..., None], self.mean, other.mean),
             torch.where(k[..., None, None], self.cov, other.cov),
         )
+
+
+# ---------------------------------------------------------------------------------------------
+# Unchecked arithmetic (one implementation of each identity)
+# ---------------------------------------------------------------------------------------------
+
+
+def _chol_logpdf(diff: Tensor, chol: Tensor) -> Tensor:
+    r""":math:`\log\mathcal N(d\mid 0, LL^\top)` from ``diff: (..., m)`` and a Cholesky factor ``(..., m, m)``."""
+    m = diff.shape[-1]
+    sol = torch.linalg.solve_triangular(chol, diff.unsqueeze(-1), upper=False).squeeze(-1)
+    logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
+    return -0.5 * (sol.square().sum(-1) + logdet + m * _LOG_2PI)
+
+
+def _dot(x: Tensor, h: Tensor) -> Tensor:
+    """``x · h`` over the last dimension; a single GEMV when ``h`` is 1-D."""
+    return x @ h if h.ndim == 1 else (x * h).sum(-1)
+
+
+def _covvec(cov: Tensor, h: Tensor) -> Tensor:
+    """``Σ h`` for ``cov: (..., n, n)``, ``h: (..., n)``; a single GEMV when ``h`` is 1-D."""
+    return cov @ h if h.ndim == 1 else (cov @ h.unsqueeze(-1)).squeeze(-1)
+
+
+# Largest n_out * n_in for which A Σ Aᵀ is computed as one GEMM with a (n_out², n_in²) matrix.
+_KRON_MAX = 64
+
+
+def _sandwich_operator(A: Tensor) -> Tensor | None:
+    r"""Matrix :math:`M` with :math:`\operatorname{vec}(A\Sigma A^\top) = \operatorname{vec}(\Sigma) M`
+    for symmetric :math:`\Sigma`, or ``None`` when ``A`` is batched or too large.
+
+    :math:`M` is the symmetrized Kronecker product :math:`\tfrac12(A\otimes A + (A\otimes A)P)`
+    (``P`` swaps the two input indices), so rows ``(i, j)`` and ``(j, i)`` of the result are
+    computed from identical coefficients and the output is symmetric. One small GEMM over the
+    whole batch replaces two batched matrix products (much faster for small ``n`` on CPU).
+    """
+    if A.ndim != 2 or A.shape[0] * A.shape[1] > _KRON_MAX:
+        return None
+    p, q = A.shape
+    kron = A[:, None, :, None] * A[None, :, None, :]          # [i, j, k, l] = A_ik A_jl
+    kron = 0.5 * (kron + kron.transpose(2, 3))                 # symmetrize over (k, l)
+    return kron.reshape(p * p, q * q).T.contiguous()           # (q², p²)
+
+
+def _sandwich(A: Tensor, cov: Tensor, op: Tensor | None = None) -> Tensor:
+    r""":math:`A\Sigma A^\top` (symmetric) for ``A: (..., p, q)``, ``cov: (..., q, q)``; ``op`` from
+    :func:`_sandwich_operator` selects the single-GEMM path."""
+    if op is None:
+        return _sym(A @ cov @ A.transpose(-1, -2))
+    p, q = A.shape
+    flat = cov.reshape(*cov.shape[:-2], q * q) @ op
+    return flat.reshape(*cov.shape[:-2], p, p)
+
+
+def _predict_core(
+    mean: Tensor,
+    cov: Tensor,
+    A: Tensor,
+    Q: Tensor | None,
+    offset: Tensor | None,
+    op: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    r"""One-cause Eq. (gauss-marginal): :math:`(A\mu + b,\; A\Sigma A^\top + Q)`, unchecked.
+
+    ``op`` is an optional precomputed :func:`_sandwich_operator` of ``A``.
+    """
+    m = mean @ A.T if A.ndim == 2 else _matvec(A, mean)
+    if offset is not None:
+        m = m + offset
+    c = _sandwich(A, cov, op)
+    if Q is not None:
+        c = c + Q
+    return m, c
+
+
+def _whiten(H: Tensor, R: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    r"""Whitening of the observation model: with :math:`R = L_RL_R^\top`, the observation
+    :math:`\tilde y = L_R^{-1}y` has model :math:`\tilde y = \tilde H x + \tilde\delta`,
+    :math:`\tilde H = L_R^{-1}H`, :math:`\tilde\delta\sim\mathcal N(0, I)`.
+
+    Returns ``(L_R, H̃, log det R, info)`` with ``info`` the Cholesky status of ``R``.
+    """
+    chol, info = torch.linalg.cholesky_ex(R)
+    Hw = torch.linalg.solve_triangular(chol, H, upper=False)
+    logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
+    return chol, Hw, logdet, info
+
+
+def _condition_whitened(
+    mean: Tensor,
+    cov: Tensor,
+    Hw: Tensor,
+    yw: Sequence[Tensor],
+    weight: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    r"""Eq. (gauss-condition) for whitened observations, one scalar component at a time.
+
+    Given :math:`\tilde y_j = \tilde h_j^\top x + \tilde\delta_j` with independent unit-variance
+    noise, conditioning on all :math:`m` components jointly equals conditioning on them one
+    after the other (the posterior after :math:`j` components is the prior for the next). Each
+    scalar step, with :math:`p = \Sigma\tilde h_j`, :math:`s = \tilde h_j^\top p + 1`,
+    :math:`g = p/\sqrt s`, :math:`e = (\tilde y_j - \tilde h_j^\top\mu)/\sqrt s`, is
+
+    .. math:: \mu \leftarrow \mu + g\,e,\qquad \Sigma \leftarrow \Sigma - g g^\top,
+
+    i.e. the Kalman update with gain :math:`p/s` (no matrix inverse, and :math:`gg^\top` keeps
+    :math:`\Sigma` exactly symmetric). By the chain rule the evidence is
+    :math:`\log p(\tilde y) = -\tfrac12\sum_j (e_j^2 + \log s_j + \log 2\pi)`.
+
+    Args:
+        Hw: ``(..., m, n)`` whitened observation matrix (1-D rows give single-GEMV products).
+        yw: the ``m`` whitened components, each ``(...)``.
+        weight: optional ``(...)`` 0/1 factor; where 0 the update is skipped exactly
+            (``g = 0``) and the step adds nothing to the evidence.
+
+    Returns ``(mean, cov, q)`` with ``q = Σ_j (e_j² + log s_j)`` (weighted); ``q`` is NaN or
+    infinite where some :math:`s_j` was not positive (innovation covariance not positive definite).
+    """
+    acc: Tensor | None = None
+    for j in range(Hw.shape[-2]):
+        h = Hw[..., j, :]
+        p = _covvec(cov, h)
+        s = _dot(p, h) + 1.0
+        r = torch.rsqrt(s)
+        e = (yw[j] - _dot(mean, h)) * r
+        g = p * r.unsqueeze(-1)
+        if weight is not None:
+            g = g * weight.unsqueeze(-1)
+        if g.ndim == 1:   # gain shared by the batch: the rank-1 update e gᵀ is one GEMM
+            mean = mean + e.unsqueeze(-1) @ g.unsqueeze(0)
+        else:
+            mean = torch.addcmul(mean, g, e.unsqueeze(-1))
+        cov = torch.addcmul(cov, g.unsqueeze(-1), g.unsqueeze(-2), value=-1.0)
+        term = torch.addcmul(torch.log(s), e, e)
+        if weight is not None:
+            term = term * weight
+        acc = term if acc is None else acc + term
+    assert acc is not None
+    return mean, cov, acc
+
+
+def _condition_core(
+    mean: Tensor,
+    cov: Tensor,
+    H: Tensor,
+    R: Tensor,
+    y: Tensor,
+    offset: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    r"""Eq. (gauss-condition) in Kalman form plus the evidence Eq. (gauss-evidence), unchecked.
+
+    .. math:: S = H\Sigma H^\top + R,\quad K = \Sigma H^\top S^{-1},\quad
+              \mu^+ = \mu + K(y - H\mu - b),\quad \Sigma^+ = \Sigma - KSK^\top,\quad
+              \log p(y) = \log\mathcal N(y\mid H\mu + b, S),
+
+    computed by whitening (:func:`_whiten`) and sequential scalar conditioning
+    (:func:`_condition_whitened`); :math:`\log\det S = \log\det R + \sum_j\log s_j`.
+    Returns ``(mean, cov, log p(y), info)`` where ``info`` is non-zero where ``R`` or
+    :math:`S` is not positive definite.
+    """
+    chol, Hw, logdet_r, info_r = _whiten(H, R)
+    resid = y if offset is None else y - offset
+    yw = torch.linalg.solve_triangular(chol, resid.unsqueeze(-1), upper=False).squeeze(-1)
+    new_mean, new_cov, q = _condition_whitened(mean, cov, Hw, yw.unbind(-1))
+    m = y.shape[-1]
+    loglik = -0.5 * (q + logdet_r + m * _LOG_2PI)
+    info = (info_r != 0) | ~torch.isfinite(q)
+    return new_mean, new_cov, loglik, info.to(torch.int32)
+
+
+# ---------------------------------------------------------------------------------------------
+# Public, validated API
+# ---------------------------------------------------------------------------------------------
 
 
 def log_density(x: Tensor, mean: Tensor, cov: Tensor) -> Tensor:
@@ -122,22 +354,19 @@ def log_density(x: Tensor, mean: Tensor, cov: Tensor) -> Tensor:
     n = x.shape[-1]
     check_last_dims("mean", mean, (n,))
     check_last_dims("cov", cov, (n, n))
+    check_same_batch(("x", "mean", "cov"), (x, mean, cov), (1, 1, 2))
     chol, info = torch.linalg.cholesky_ex(_sym(cov))
     if bool((info != 0).any()):
         raise ValueError("cov: matrix is not positive definite")
-    diff = (x - mean).unsqueeze(-1)
-    batch = torch.broadcast_shapes(diff.shape[:-2], chol.shape[:-2])
-    diff, chol = diff.expand(*batch, n, 1), chol.expand(*batch, n, n)
-    sol = torch.linalg.solve_triangular(chol, diff, upper=False)
-    maha = (sol.squeeze(-1) ** 2).sum(-1)
-    logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
-    return -0.5 * (maha + logdet + n * _LOG_2PI)
+    return _chol_logpdf(x - mean, chol)
 
 
 def marginalize_linear(
     causes: Sequence[tuple[Tensor | None, Gaussian]],
     noise_cov: Tensor | None = None,
     offset: Tensor | None = None,
+    *,
+    validate: bool = True,
 ) -> Gaussian:
     r"""Distribution of :math:`y = \sum_i A_i u_i + b + \varepsilon`, Eq. (gauss-marginal).
 
@@ -147,6 +376,8 @@ def marginalize_linear(
         noise_cov: covariance ``Q: (..., m, m)`` of the independent noise :math:`\varepsilon`
             (positive semi-definite), or ``None`` for no noise.
         offset: known additive term ``b: (..., m)`` (e.g. a control input ``B u``), or ``None``.
+        validate: check that ``noise_cov`` is symmetric positive semi-definite (one
+            eigenvalue computation); shapes are always checked.
 
     Returns:
         :math:`\mathcal N(\sum_i A_i\mu_i + b,\; Q + \sum_i A_i\Sigma_iA_i^\top)`.
@@ -155,15 +386,17 @@ def marginalize_linear(
         raise ValueError("causes: need at least one (A, Gaussian) pair")
     mean: Tensor | None = None
     cov: Tensor | None = None
-    for i, (A, u) in enumerate(causes):
+    for i, item in enumerate(causes):
+        if not (isinstance(item, (tuple, list)) and len(item) == 2):
+            raise ValueError(f"causes[{i}]: expected a pair (A, Gaussian)")
+        A, u = item
         if not isinstance(u, Gaussian):
             raise ValueError(f"causes[{i}]: expected a Gaussian, got {type(u).__name__}")
         if A is None:
             m_i, c_i = u.mean, u.cov
         else:
             check_last_dims(f"causes[{i}].A", A, (None, u.dim))
-            m_i = (A @ u.mean.unsqueeze(-1)).squeeze(-1)
-            c_i = A @ u.cov @ A.transpose(-1, -2)
+            m_i, c_i = _predict_core(u.mean, u.cov, A, None, None)
         if mean is not None and m_i.shape[-1] != mean.shape[-1]:
             raise ValueError(
                 f"causes[{i}]: output dimension {m_i.shape[-1]} differs from the first cause's {mean.shape[-1]}"
@@ -174,6 +407,8 @@ def marginalize_linear(
     m = mean.shape[-1]
     if noise_cov is not None:
         check_last_dims("noise_cov", noise_cov, (m, m))
+        if validate:
+            check_spd("noise_cov", noise_cov, semidefinite=True)
         cov = cov + noise_cov
     if offset is not None:
         check_last_dims("offset", offset, (m,))
@@ -193,14 +428,14 @@ def joint_linear_gaussian(
     check_last_dims("H", H, (None, n))
     m = H.shape[-2]
     check_last_dims("R", R, (m, m))
-    y = marginalize_linear([(H, prior)], noise_cov=R, offset=offset)
+    y = marginalize_linear([(H, prior)], noise_cov=R, offset=offset, validate=False)
     cross = prior.cov @ H.transpose(-1, -2)  # Σ Hᵀ : (..., n, m)
     batch = torch.broadcast_shapes(prior.cov.shape[:-2], y.cov.shape[:-2], cross.shape[:-2])
     top = torch.cat([prior.cov.expand(*batch, n, n), cross.expand(*batch, n, m)], dim=-1)
     bottom = torch.cat(
         [cross.transpose(-1, -2).expand(*batch, m, n), y.cov.expand(*batch, m, m)], dim=-1
     )
-    mb = torch.broadcast_shapes(prior.mean.shape[:-1], y.mean.shape[:-1], batch)
+    mb = torch.broadcast_shapes(prior.mean.shape[:-1], y.mean.shape[:-1])
     mean = torch.cat([prior.mean.expand(*mb, n), y.mean.expand(*mb, m)], dim=-1)
     return Gaussian(mean, torch.cat([top, bottom], dim=-2))
 
@@ -208,12 +443,13 @@ def joint_linear_gaussian(
 def condition_on_block(joint: Gaussian, n_first: int, y: Tensor) -> Gaussian:
     r"""Condition a joint Gaussian over ``[x; y]`` on its last block ``y``, Eq. (gauss-condition).
 
-    ``x`` is the first ``n_first`` coordinates. Uses a Cholesky solve with
-    :math:`\Sigma_{yy}` (never an explicit inverse).
+    ``x`` is the first ``n_first`` coordinates. The posterior covariance is the Schur
+    complement :math:`\Sigma_{xx} - \Sigma_{xy}\Sigma_{yy}^{-1}\Sigma_{yx}`; computed with a
+    Cholesky solve with :math:`\Sigma_{yy}` (never an explicit inverse).
     """
     n = n_first
-    if not 0 < n < joint.dim:
-        raise ValueError(f"n_first: must be in (0, {joint.dim}), got {n}")
+    if not isinstance(n, int) or not 0 < n < joint.dim:
+        raise ValueError(f"n_first: must be an integer in (0, {joint.dim}), got {n!r}")
     check_last_dims("y", y, (joint.dim - n,))
     mu_x, mu_y = joint.mean[..., :n], joint.mean[..., n:]
     s_xx = joint.cov[..., :n, :n]
@@ -224,64 +460,69 @@ def condition_on_block(joint: Gaussian, n_first: int, y: Tensor) -> Gaussian:
         raise ValueError("joint.cov: the observed block is not positive definite")
     # G = Σ_xy Σ_yy^{-1}  (solve Σ_yy Gᵀ = Σ_yx)
     gain = torch.cholesky_solve(s_xy.transpose(-1, -2), chol).transpose(-1, -2)
-    mean = mu_x + (gain @ (y - mu_y).unsqueeze(-1)).squeeze(-1)
+    mean = mu_x + _matvec(gain, y - mu_y)
     cov = s_xx - gain @ s_xy.transpose(-1, -2)
     return Gaussian(mean, _sym(cov))
 
 
-def condition_with_evidence(
-    prior: Gaussian, H: Tensor, R: Tensor, y: Tensor, offset: Tensor | None = None
-) -> tuple[Gaussian, Tensor]:
-    r"""Bayes' rule for a linear-Gaussian observation, with the evidence.
-
-    Posterior :math:`p(x\mid y)` by Eq. (gauss-condition) in Kalman form,
-
-    .. math:: S = H\Sigma H^\top + R,\quad K = \Sigma H^\top S^{-1},\quad
-              \mu^+ = \mu + K(y - H\mu - b),\quad
-              \Sigma^+ = (I-KH)\Sigma(I-KH)^\top + KRK^\top,
-
-    (the last is the Joseph form, algebraically equal to :math:`(I-KH)\Sigma` but symmetric and
-    positive semi-definite in floating point), and the evidence
-    :math:`\log p(y) = \log\mathcal N(y\mid H\mu + b, S)` (Eq. gauss-evidence).
-
-    Shapes: ``H: (..., m, n)``, ``R: (..., m, m)``, ``y: (..., m)``. Returns ``(posterior, log p(y))``.
-    """
+def _check_observation(prior: Gaussian, H: Tensor, R: Tensor, y: Tensor, offset: Tensor | None) -> None:
     n = prior.dim
     check_last_dims("H", H, (None, n))
     m = H.shape[-2]
     check_last_dims("R", R, (m, m))
     check_last_dims("y", y, (m,))
-    Ht = H.transpose(-1, -2)
-    PHt = prior.cov @ Ht
-    S = _sym(H @ PHt + R)
-    chol, info = torch.linalg.cholesky_ex(S)
-    if bool((info != 0).any()):
-        raise ValueError("R: the innovation covariance H Σ Hᵀ + R is not positive definite")
-    pred = (H @ prior.mean.unsqueeze(-1)).squeeze(-1)
     if offset is not None:
         check_last_dims("offset", offset, (m,))
-        pred = pred + offset
-    innov = y - pred
-    K = torch.cholesky_solve(PHt.transpose(-1, -2), chol).transpose(-1, -2)  # (..., n, m)
-    mean = prior.mean + (K @ innov.unsqueeze(-1)).squeeze(-1)
-    eye = torch.eye(n, dtype=prior.cov.dtype, device=prior.cov.device)
-    IKH = eye - K @ H
-    cov = IKH @ prior.cov @ IKH.transpose(-1, -2) + K @ R @ K.transpose(-1, -2)
-    batch = torch.broadcast_shapes(innov.shape[:-1], chol.shape[:-2])
-    sol = torch.linalg.solve_triangular(
-        chol.expand(*batch, m, m), innov.unsqueeze(-1).expand(*batch, m, 1), upper=False
+    check_same_batch(
+        ("y", "prior.mean", "prior.cov", "H", "R"), (y, prior.mean, prior.cov, H, R), (1, 1, 2, 2, 2)
     )
-    maha = (sol.squeeze(-1) ** 2).sum(-1)
-    logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
-    loglik = -0.5 * (maha + logdet + m * _LOG_2PI)
-    return Gaussian(mean, _sym(cov)), loglik
+
+
+def condition_with_evidence(
+    prior: Gaussian,
+    H: Tensor,
+    R: Tensor,
+    y: Tensor,
+    offset: Tensor | None = None,
+    *,
+    validate: bool = True,
+) -> tuple[Gaussian, Tensor]:
+    r"""Bayes' rule for a linear-Gaussian observation :math:`y\mid x\sim\mathcal N(Hx+b, R)`, with the evidence.
+
+    Posterior :math:`p(x\mid y)` by Eq. (gauss-condition) applied to the joint Eq. (gauss-joint):
+
+    .. math:: S = H\Sigma H^\top + R,\quad K = \Sigma H^\top S^{-1},\quad
+              \mu^+ = \mu + K(y - H\mu - b),\quad \Sigma^+ = \Sigma - K S K^\top,
+
+    and the evidence :math:`\log p(y) = \log\mathcal N(y\mid H\mu + b, S)` (Eq. gauss-evidence).
+    Computed without any matrix inverse: the observation is whitened with the Cholesky factor
+    of ``R`` and its ``m`` components are conditioned on one after the other (see
+    ``_condition_whitened``), which gives exactly the joint update.
+
+    Shapes: ``H: (..., m, n)``, ``R: (..., m, m)``, ``y: (..., m)``, ``offset: (..., m)``.
+    Returns ``(posterior, log p(y))`` with ``log p(y): (...)``.
+    With ``validate`` (default) ``R`` must be symmetric positive definite.
+    """
+    _check_observation(prior, H, R, y, offset)
+    if validate:
+        check_spd("R", R)
+    mean, cov, loglik, info = _condition_core(prior.mean, prior.cov, H, R, y, offset)
+    if bool((info != 0).any()):
+        raise ValueError("R: the innovation covariance H Σ Hᵀ + R is not positive definite")
+    return Gaussian(mean, cov), loglik
 
 
 def condition(
-    prior: Gaussian, H: Tensor, R: Tensor, y: Tensor, offset: Tensor | None = None
+    prior: Gaussian,
+    H: Tensor,
+    R: Tensor,
+    y: Tensor,
+    offset: Tensor | None = None,
+    *,
+    validate: bool = True,
 ) -> Gaussian:
     r"""Posterior :math:`p(x\mid y)` for :math:`y\mid x\sim\mathcal N(Hx+b,R)`, Eq. (gauss-condition).
 
     See :func:`condition_with_evidence`, which also returns :math:`\log p(y)`.
     """
-    return condition_with_evidence(prior, H, R, y, offset)[0]
+    return condition_with_evidence(prior, H, R, y, offset, validate=validate)[0]

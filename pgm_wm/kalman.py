@@ -8,17 +8,24 @@ Model (Chapter 1, Eq. (ssm)):
 
 with the prior :math:`z_1 \sim \mathcal N(\mu_1, \Sigma_1)` given by ``init``.
 
-* predict (Eq. kf-predict) = :func:`pgm_wm.gaussian.marginalize_linear` with one cause;
-* update (Eq. kf-update) = :func:`pgm_wm.gaussian.condition_with_evidence`;
+* predict (Eq. kf-predict) = Eq. (gauss-marginal) with one cause, :func:`pgm_wm.gaussian.marginalize_linear`;
+* update (Eq. kf-update) = Eq. (gauss-condition), :func:`pgm_wm.gaussian.condition_with_evidence`;
 * a missing observation (``mask`` False) skips the update: the posterior equals the prior and
-  the step contributes 0 to the log-likelihood;
+  the step contributes 0 to the log-likelihood (Eq. kf-loglik);
 * the RTS smoother (Eq. rts) runs backwards over the filtered and predicted beliefs.
 
 Convention: ``init`` is the prior of the *first* state, so step ``t`` first updates with
-``y_t`` and then predicts ``z_{t+1}``. (filterpy's ``batch_filter`` predicts first; pass
-``kf_predict(x0)`` as ``init`` to match it.) Everything is batched over leading dimensions
-and differentiable, so noise parameters can be learned by gradient ascent on
+``y_t`` and then predicts ``z_{t+1}``. This is filterpy's ``batch_filter(..., update_first=True)``
+with ``x = init.mean``, ``P = init.cov``. Everything is batched over leading dimensions and
+differentiable, so noise parameters can be learned by gradient ascent on
 :attr:`KalmanFilterResult.log_likelihood`.
+
+Speed: :func:`kalman_filter` validates the whole sequence once and then runs the unchecked
+arithmetic of :mod:`pgm_wm.gaussian` in its time loop: the observation is whitened once
+(``_whiten``), each update conditions on the ``m`` whitened components one after the other
+(``_condition_whitened``, no matrix inverse), and :math:`F\Sigma F^\top` is one small GEMM
+(``_sandwich_operator``). Covariances that are the same for every sequence of the batch (no
+mask, unbatched parameters) are computed and stored once.
 """
 
 from __future__ import annotations
@@ -28,8 +35,17 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ._checks import check_last_dims, check_mask, check_spd, check_tensor
-from .gaussian import Gaussian, condition_with_evidence, marginalize_linear
+from ._checks import check_last_dims, check_mask, check_same_batch, check_spd, check_tensor
+from .gaussian import (
+    _LOG_2PI,
+    Gaussian,
+    _condition_whitened,
+    _predict_core,
+    _sandwich_operator,
+    _sym,
+    _whiten,
+    condition_with_evidence,
+)
 
 __all__ = [
     "kf_predict",
@@ -40,8 +56,25 @@ __all__ = [
 ]
 
 
+def _control_offset(B: Tensor | None, u: Tensor | None, n: int) -> Tensor | None:
+    """Check ``B: (..., n, k)`` and ``u: (..., k)`` and return ``B u`` (or ``None``)."""
+    if (B is None) != (u is None):
+        raise ValueError("B: B and u must be given together")
+    if B is None or u is None:
+        return None
+    check_last_dims("B", B, (n, None))
+    check_last_dims("u", u, (B.shape[-1],))
+    return (B @ u.unsqueeze(-1)).squeeze(-1)
+
+
 def kf_predict(
-    belief: Gaussian, F: Tensor, Q: Tensor, B: Tensor | None = None, u: Tensor | None = None
+    belief: Gaussian,
+    F: Tensor,
+    Q: Tensor,
+    B: Tensor | None = None,
+    u: Tensor | None = None,
+    *,
+    validate: bool = True,
 ) -> Gaussian:
     r"""Kalman predict step, Eq. (kf-predict): :math:`\mathcal N(F\mu + Bu,\; F\Sigma F^\top + Q)`.
 
@@ -49,32 +82,45 @@ def kf_predict(
     Eq. (gauss-marginal) with one Gaussian cause and a known additive input ``B u``.
 
     Shapes: ``F: (..., n, n)``, ``Q: (..., n, n)``, ``B: (..., n, k)``, ``u: (..., k)``.
+    With ``validate`` (default) ``Q`` must be symmetric positive semi-definite.
     """
     n = belief.dim
     check_last_dims("F", F, (n, n))
     check_last_dims("Q", Q, (n, n))
-    offset = None
-    if (B is None) != (u is None):
-        raise ValueError("B: B and u must be given together")
-    if B is not None and u is not None:
-        check_last_dims("B", B, (n, None))
-        check_last_dims("u", u, (B.shape[-1],))
-        offset = (B @ u.unsqueeze(-1)).squeeze(-1)
-    return marginalize_linear([(F, belief)], noise_cov=Q, offset=offset)
+    if validate:
+        check_spd("Q", Q, semidefinite=True)
+    offset = _control_offset(B, u, n)
+    mean, cov = _predict_core(belief.mean, belief.cov, F, Q, offset)
+    return Gaussian(mean, cov)
 
 
 def kf_update(
-    belief: Gaussian, y: Tensor, H: Tensor, R: Tensor, mask: Tensor | None = None
+    belief: Gaussian,
+    y: Tensor,
+    H: Tensor,
+    R: Tensor,
+    mask: Tensor | None = None,
+    *,
+    validate: bool = True,
 ) -> tuple[Gaussian, Tensor]:
     r"""Kalman update step, Eq. (kf-update): condition the prior on :math:`y = Hz + \delta`.
 
-    Returns ``(posterior, log p(y | past))``. Where ``mask`` (shape ``(...)``, True = observed)
-    is False, the posterior is the prior and the log-likelihood term is 0.
+    .. math:: S = H\Sigma^- H^\top + R,\quad K = \Sigma^- H^\top S^{-1},\quad
+              \mu^+ = \mu^- + K(y - H\mu^-),\quad \Sigma^+ = \Sigma^- - KSK^\top.
+
+    Returns ``(posterior, log p(y | past))`` with the log-likelihood term ``(...)``. Where
+    ``mask`` (shape ``(...)``, True = observed) is False, the posterior is the prior and the
+    log-likelihood term is 0 (the value of ``y`` there is ignored, NaN included).
+    With ``validate`` (default) ``R`` must be symmetric positive definite.
     """
-    post, loglik = condition_with_evidence(belief, H, R, y)
+    if mask is not None:
+        check_tensor("y", y, min_ndim=1)
+        batch = torch.broadcast_shapes(y.shape[:-1], belief.batch_shape)
+        mask = check_mask("mask", mask, tuple(batch))
+        y = torch.where(mask[..., None], y, torch.zeros((), dtype=y.dtype))
+    post, loglik = condition_with_evidence(belief, H, R, y, validate=validate)
     if mask is None:
         return post, loglik
-    mask = check_mask("mask", mask, tuple(loglik.shape))
     return post.where(mask, belief), torch.where(mask, loglik, torch.zeros_like(loglik))
 
 
@@ -84,8 +130,9 @@ class KalmanFilterResult:
 
     Attributes:
         filtered: posteriors :math:`p(z_t\\mid y_{1:t})`, mean ``(..., T, n)``, cov ``(..., T, n, n)``.
-        predicted: priors :math:`p(z_t\\mid y_{1:t-1})` with the same shapes (``predicted[..., 0]``
-            is ``init``), plus the one-step-ahead prior of :math:`z_{T+1}` in ``next_prior``.
+        predicted: priors :math:`p(z_t\\mid y_{1:t-1})` with the same shapes (``predicted`` at
+            ``t = 0`` is ``init``).
+        next_prior: the one-step-ahead prior :math:`p(z_{T+1}\\mid y_{1:T})`, mean ``(..., n)``.
         log_likelihoods: :math:`\\log p(y_t\\mid y_{1:t-1})` per step, ``(..., T)``; 0 at missing steps.
     """
 
@@ -96,7 +143,7 @@ class KalmanFilterResult:
 
     @property
     def log_likelihood(self) -> Tensor:
-        """Total log-likelihood :math:`\\log p(y_{1:T})` (Eq. kf-loglik), shape ``(...)``."""
+        """Total log-likelihood :math:`\\log p(y_{1:T}) = \\sum_t \\log p(y_t\\mid y_{1:t-1})` (Eq. kf-loglik), shape ``(...)``."""
         return self.log_likelihoods.sum(-1)
 
 
@@ -114,85 +161,159 @@ def kalman_filter(
 ) -> KalmanFilterResult:
     r"""Run the Kalman filter over sequences ``y: (..., T, m)``.
 
-    For :math:`t = 1..T`: update with :math:`y_t` (skipped where ``mask[..., t]`` is False), then
-    predict :math:`z_{t+1}` using control ``u[..., t, :]`` if given. Parameters are constant in time
-    and broadcast over the batch: ``F, Q: (..., n, n)``, ``H: (..., m, n)``, ``R: (..., m, m)``,
-    ``B: (..., n, k)``, ``u: (..., T, k)``, ``mask: (..., T)`` bool (True = observed).
+    For :math:`t = 1..T`: update with :math:`y_t` (Eq. kf-update; skipped where ``mask[..., t]``
+    is False), then predict :math:`z_{t+1}` (Eq. kf-predict) using control ``u[..., t, :]`` if
+    given. The per-step terms :math:`\log p(y_t\mid y_{1:t-1}) = \log\mathcal N(y_t\mid
+    H\mu^-_t, S_t)` sum to the log-likelihood, Eq. (kf-loglik).
 
-    With ``validate`` (default) the covariances are checked once: ``Q`` positive semi-definite,
-    ``R`` and ``init.cov`` positive definite; a failure raises ``ValueError`` naming the argument.
+    Parameters are constant in time and broadcast over the batch: ``F, Q: (..., n, n)``,
+    ``H: (..., m, n)``, ``R: (..., m, m)``, ``B: (..., n, k)``, ``u: (..., T, k)``,
+    ``mask: (..., T)`` bool or 0/1 with exactly ``y.shape[:-1]`` (True = observed). Values of
+    ``y`` at missing steps are ignored (they may be NaN) and do not affect gradients.
+
+    With ``validate`` (default) the inputs are checked once: ``Q`` positive semi-definite,
+    ``R`` and ``init.cov`` positive definite, ``y`` finite where observed; a failure raises
+    ``ValueError`` naming the argument. Shapes are always checked. If an innovation covariance
+    loses positive definiteness during the run (only possible with ``validate=False`` and bad
+    inputs), a ``ValueError`` naming ``R`` is raised after the loop.
     """
     check_tensor("y", y, min_ndim=2)
+    if not isinstance(init, Gaussian):
+        raise ValueError(f"init: expected a Gaussian, got {type(init).__name__}")
     n = init.dim
     T, m = y.shape[-2], y.shape[-1]
+    if T < 1:
+        raise ValueError(f"y: expected at least one time step, got shape {tuple(y.shape)}")
     check_last_dims("F", F, (n, n))
     check_last_dims("H", H, (m, n))
     check_last_dims("Q", Q, (n, n))
     check_last_dims("R", R, (m, m))
+    for name, x in (("F", F), ("H", H), ("Q", Q), ("R", R), ("init.mean", init.mean), ("init.cov", init.cov)):
+        if x.dtype != y.dtype:
+            raise ValueError(f"{name}: dtype {x.dtype} differs from y's dtype {y.dtype}")
+    if mask is not None:
+        mask = check_mask("mask", mask, tuple(y.shape[:-1]))
+    offsets: Tensor | None = None
+    if (B is None) != (u is None):
+        raise ValueError("B: B and u must be given together")
+    if B is not None and u is not None:
+        check_last_dims("B", B, (n, None))
+        check_last_dims("u", u, (T, B.shape[-1]))
+        offsets = (B.unsqueeze(-3) @ u.unsqueeze(-1)).squeeze(-1)  # (..., T, n)
+    batch = check_same_batch(
+        ("y", "init.mean", "init.cov", "F", "H", "Q", "R"),
+        (y[..., 0, :], init.mean, init.cov, F, H, Q, R),
+        (1, 1, 2, 2, 2, 2, 2),
+    )
+    if offsets is not None:
+        check_same_batch(("u", "y"), (offsets[..., 0, :], y[..., 0, :]), (1, 1))
     if validate:
         check_spd("Q", Q, semidefinite=True)
         check_spd("R", R)
         check_spd("init.cov", init.cov)
+        observed = y if mask is None else y[mask]
+        if not bool(torch.isfinite(observed).all()):
+            raise ValueError("y: contains NaN or infinite values at observed steps")
     if mask is not None:
-        mask = check_mask("mask", mask, tuple(y.shape[:-1]))
-    if (B is None) != (u is None):
-        raise ValueError("B: B and u must be given together")
-    if u is not None:
-        check_last_dims("u", u, (T, None))
+        # zero the ignored entries so that NaNs there cannot reach values or gradients
+        y = torch.where(mask[..., None], y, torch.zeros((), dtype=y.dtype))
 
-    belief = init
-    f_means, f_covs, p_means, p_covs, logliks = [], [], [], [], []
+    # Everything that does not change over time is prepared once: the whitened observation
+    # model (R = L Lᵀ, H̃ = L⁻¹H, ỹ_t = L⁻¹y_t), the single-GEMM operator for F Σ Fᵀ, the
+    # per-step 0/1 weights and the per-step slices.
+    chol_r, Hw, logdet_r, info_r = _whiten(H, R)
+    yw = torch.linalg.solve_triangular(chol_r.unsqueeze(-3), y.unsqueeze(-1), upper=False)
+    yw_steps = yw.squeeze(-1).movedim(-2, 0).movedim(-1, 1).unbind(0)   # T × (m, ...)
+    w_steps = None if mask is None else mask.to(y.dtype).movedim(-1, 0).unbind(0)
+    u_steps = None if offsets is None else offsets.movedim(-2, 0).unbind(0)
+    op = _sandwich_operator(F)
+    const = logdet_r + m * _LOG_2PI   # per observed step
+
+    mean, cov = init.mean, init.cov
+    f_means, f_covs, p_means, p_covs, qs = [], [], [], [], []
     for t in range(T):
-        p_means.append(belief.mean)
-        p_covs.append(belief.cov)
-        post, ll = kf_update(belief, y[..., t, :], H, R, None if mask is None else mask[..., t])
-        f_means.append(post.mean)
-        f_covs.append(post.cov)
-        logliks.append(ll)
-        belief = kf_predict(post, F, Q, B, None if u is None else u[..., t, :])
+        p_means.append(mean)
+        p_covs.append(cov)
+        w = None if w_steps is None else w_steps[t]
+        mean, cov, q = _condition_whitened(mean, cov, Hw, yw_steps[t].unbind(0), w)
+        qs.append(q)
+        f_means.append(mean)
+        f_covs.append(cov)
+        mean, cov = _predict_core(mean, cov, F, Q, None if u_steps is None else u_steps[t], op)
 
-    def stack(xs: list[Tensor], k: int) -> Tensor:
-        shape = torch.broadcast_shapes(*(x.shape for x in xs))
-        return torch.stack([x.expand(shape) for x in xs], dim=-1 - k)
+    q_all = _stack(qs, 0)
+    if mask is None:
+        log_likelihoods = -0.5 * (q_all + const.unsqueeze(-1))
+    else:
+        log_likelihoods = -0.5 * (q_all + const.unsqueeze(-1) * mask.to(q_all.dtype))
+    # q is NaN/inf exactly where some innovation variance s_j was not positive
+    if bool((info_r != 0).any()) or not bool(torch.isfinite(q_all).all()):
+        raise ValueError("R: an innovation covariance H Σ Hᵀ + R was not positive definite")
 
     return KalmanFilterResult(
-        filtered=Gaussian(stack(f_means, 1), stack(f_covs, 2)),
-        predicted=Gaussian(stack(p_means, 1), stack(p_covs, 2)),
-        next_prior=belief,
-        log_likelihoods=stack(logliks, 0),
+        filtered=_stack_gaussian(f_means, f_covs),
+        predicted=_stack_gaussian(p_means, p_covs),
+        next_prior=Gaussian(mean, cov),
+        log_likelihoods=log_likelihoods,
     )
+
+
+def _stack(xs: list[Tensor], k: int) -> Tensor:
+    """Stack per-step tensors with ``k`` event dims along a new time axis at ``-1 - k``."""
+    shape = torch.broadcast_shapes(*(x.shape for x in xs))
+    return torch.stack([x.expand(shape) for x in xs], dim=-1 - k)
+
+
+def _stack_gaussian(means: list[Tensor], covs: list[Tensor]) -> Gaussian:
+    """Stack per-step beliefs into mean ``(..., T, n)``, cov ``(..., T, n, n)``.
+
+    Covariances that are shared across the batch (all-observed sequences with unbatched
+    parameters) are stored once and returned as a broadcast view, not copied per sequence.
+    """
+    mean, cov = _stack(means, 1), _stack(covs, 2)
+    batch = torch.broadcast_shapes(mean.shape[:-2], cov.shape[:-3])
+    n, T = mean.shape[-1], mean.shape[-2]
+    return Gaussian(mean.expand(*batch, T, n), cov.expand(*batch, T, n, n))
 
 
 def rts_smoother(result: KalmanFilterResult, F: Tensor) -> Gaussian:
     r"""Rauch–Tung–Striebel smoother, Eq. (rts): :math:`p(z_t \mid y_{1:T})` for all ``t``.
 
     Backwards for :math:`t = T-1, \dots, 1` with :math:`\Sigma^-_{t+1} = F\Sigma_tF^\top + Q`
-    taken from ``result.predicted``:
+    and :math:`\mu^-_{t+1}` (including any control input) taken from ``result.predicted``:
 
     .. math:: G_t = \Sigma_t F^\top (\Sigma^-_{t+1})^{-1},\quad
               \mu^s_t = \mu_t + G_t(\mu^s_{t+1} - \mu^-_{t+1}),\quad
               \Sigma^s_t = \Sigma_t + G_t(\Sigma^s_{t+1} - \Sigma^-_{t+1})G_t^\top.
 
-    It is Gaussian conditioning of the joint of :math:`(z_t, z_{t+1})` given :math:`y_{1:t}` on the
-    smoothed :math:`z_{t+1}`. Returns a Gaussian with mean ``(..., T, n)`` and cov ``(..., T, n, n)``.
+    It is Gaussian conditioning (Eq. gauss-condition) of the joint of :math:`(z_t, z_{t+1})`
+    given :math:`y_{1:t}` on :math:`z_{t+1}`, averaged over the smoothed belief of
+    :math:`z_{t+1}`. ``F: (..., n, n)`` must be the transition used by the filter.
+    Returns a Gaussian with mean ``(..., T, n)`` and cov ``(..., T, n, n)``.
     """
+    if not isinstance(result, KalmanFilterResult):
+        raise ValueError(f"result: expected a KalmanFilterResult, got {type(result).__name__}")
     f, p = result.filtered, result.predicted
     n = f.dim
     check_last_dims("F", F, (n, n))
     T = f.mean.shape[-2]
-    means = [f.mean[..., T - 1, :]]
-    covs = [f.cov[..., T - 1, :, :]]
-    Ft = F.transpose(-1, -2)
+    Fs = F.unsqueeze(-3)  # broadcast over time
+    # All gains at once (they depend only on the filter output): G_t = Σ_t Fᵀ (Σ⁻_{t+1})⁻¹.
+    P_f = f.cov[..., :-1, :, :]
+    P_p = p.cov[..., 1:, :, :]
+    chol, info = torch.linalg.cholesky_ex(_sym(P_p))
+    if bool((info != 0).any()):
+        raise ValueError("result: a predicted covariance is not positive definite (Q too small?)")
+    G = torch.cholesky_solve(Fs @ P_f.transpose(-1, -2), chol).transpose(-1, -2)  # (..., T-1, n, n)
+    Gt = G.transpose(-1, -2)
+    m_s, c_s = f.mean[..., T - 1, :], f.cov[..., T - 1, :, :]
+    means, covs = [m_s], [c_s]
     for t in range(T - 2, -1, -1):
-        P_f = f.cov[..., t, :, :]
-        P_p = p.cov[..., t + 1, :, :]
-        chol = torch.linalg.cholesky(0.5 * (P_p + P_p.transpose(-1, -2)))
-        # G = P_f Fᵀ P_p^{-1}  ->  solve P_p Gᵀ = F P_fᵀ
-        G = torch.cholesky_solve((P_f @ Ft).transpose(-1, -2), chol).transpose(-1, -2)
-        m_s = f.mean[..., t, :] + (G @ (means[-1] - p.mean[..., t + 1, :]).unsqueeze(-1)).squeeze(-1)
-        P_s = P_f + G @ (covs[-1] - P_p) @ G.transpose(-1, -2)
+        g = G[..., t, :, :]
+        m_s = f.mean[..., t, :] + (g @ (m_s - p.mean[..., t + 1, :]).unsqueeze(-1)).squeeze(-1)
+        c_s = _sym(f.cov[..., t, :, :] + g @ (c_s - p.cov[..., t + 1, :, :]) @ Gt[..., t, :, :])
         means.append(m_s)
-        covs.append(0.5 * (P_s + P_s.transpose(-1, -2)))
+        covs.append(c_s)
     means.reverse()
     covs.reverse()
     return Gaussian(torch.stack(means, dim=-2), torch.stack(covs, dim=-3))

@@ -66,3 +66,57 @@ def markdown_table(
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(fmt(v) for v in r) + " |" for r in rows]
     return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- Chapter 2 helpers
+__all__ += ["plot_curves", "plot_gaussian_density"]
+
+
+def plot_curves(
+    ax: Any,
+    x: Any,
+    curves: dict[str, Any],
+    xlabel: str = "",
+    ylabel: str = "",
+    logx: bool = False,
+    logy: bool = False,
+    bands: dict[str, tuple[Any, Any]] | None = None,
+    marker: str = "o",
+    styles: dict[str, dict] | None = None,
+) -> None:
+    """Plot several named curves ``y(x)`` on one axis, with optional shaded ``(low, high)`` bands.
+
+    Args:
+        ax: a matplotlib axis. x: ``(K,)``. curves: name -> ``(K,)`` values.
+        bands: name -> ``(low, high)``, each ``(K,)``, drawn in the curve's colour.
+        styles: name -> extra keyword arguments for ``ax.plot`` (e.g. ``{"ls": "--"}``).
+    """
+    x = to_numpy(x)
+    for name, y in curves.items():
+        y = to_numpy(y)
+        if y.shape != x.shape:
+            raise ValueError(f"curves: {name!r} has shape {y.shape}, x has {x.shape}")
+        kw = {"marker": marker, **((styles or {}).get(name, {}))}
+        (line,) = ax.plot(x, y, label=name, **kw)
+        if bands and name in bands:
+            lo, hi = (to_numpy(b) for b in bands[name])
+            ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2)
+    if logx:
+        ax.set_xscale("log")
+    if logy:
+        ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3)
+    ax.legend()
+
+
+def plot_gaussian_density(
+    ax: Any, grid: Any, mean: float, var: float, label: str = "", **kwargs: Any
+) -> None:
+    """Plot the 1-D density of ``N(mean, var)`` on ``grid`` (``var`` is a variance)."""
+    if var <= 0:
+        raise ValueError(f"var: must be > 0, got {var}")
+    g = to_numpy(grid)
+    dens = np.exp(-0.5 * (g - mean) ** 2 / var) / np.sqrt(2 * np.pi * var)
+    ax.plot(g, dens, label=label, **kwargs)

@@ -27,7 +27,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ._checks import check_last_dims, check_mask, check_tensor
-from .factorized import FactorizedBelief, factorized_predict, factorized_update
+from .factorized import FactorizedBelief, factorized_predict_from_matrix, factorized_update
 
 __all__ = [
     "elup1",
@@ -61,8 +61,10 @@ def mlp(in_dim: int, hidden: Sequence[int], out_dim: int, activation: type[nn.Mo
 
 def band_mask(m: int, bandwidth: int) -> Tensor:
     """Boolean ``(m, m)`` mask of a band matrix: entry ``(i, j)`` is free iff ``|i - j| <= bandwidth``."""
-    if m <= 0 or bandwidth < 0:
-        raise ValueError(f"bandwidth: need m > 0 and bandwidth >= 0, got m={m}, bandwidth={bandwidth}")
+    if m <= 0:
+        raise ValueError(f"m: must be positive, got {m}")
+    if bandwidth < 0:
+        raise ValueError(f"bandwidth: must be >= 0, got {bandwidth}")
     idx = torch.arange(m)
     return (idx[:, None] - idx[None, :]).abs() <= bandwidth
 
@@ -101,8 +103,10 @@ class LocallyLinearTransition(nn.Module):
     ) -> None:
         super().__init__()
         m, K = latent_obs_dim, num_basis
-        if m <= 0 or K <= 0:
-            raise ValueError(f"num_basis: need latent_obs_dim > 0 and num_basis > 0, got {m}, {K}")
+        if m <= 0:
+            raise ValueError(f"latent_obs_dim: must be positive, got {m}")
+        if K <= 0:
+            raise ValueError(f"num_basis: must be positive, got {K}")
         if trans_var_init <= 0:
             raise ValueError(f"trans_var_init: must be positive, got {trans_var_init}")
         self.latent_obs_dim, self.num_basis, self.bandwidth = m, K, bandwidth
@@ -127,35 +131,54 @@ class LocallyLinearTransition(nn.Module):
             return torch.ones(*mean.shape[:-1], 1, dtype=mean.dtype, device=mean.device)
         return torch.softmax(self.coefficient_net(mean), dim=-1)
 
+    def dense_basis(self) -> Tensor:
+        """The band-masked basis matrices :math:`A^{(k)}` as dense ``(K, 2m, 2m)`` matrices."""
+        band = self.band.to(self.basis_11.dtype)
+        top = torch.cat([self.basis_11 * band, self.basis_12 * band], dim=-1)
+        bot = torch.cat([self.basis_21 * band, self.basis_22 * band], dim=-1)
+        return torch.cat([top, bot], dim=-2)
+
+    def _mix(self, mean: Tensor, basis: Tensor) -> Tensor:
+        """:math:`A_t` from a precomputed :meth:`dense_basis` (identity added if configured)."""
+        m2 = 2 * self.latent_obs_dim
+        if self.coefficient_net is None:
+            A = basis[0]
+        else:
+            alpha = self.coefficients(mean)  # (..., K)
+            A = (alpha @ basis.reshape(self.num_basis, m2 * m2)).reshape(*alpha.shape[:-1], m2, m2)
+        if self.add_identity:
+            A = A + torch.eye(m2, dtype=A.dtype, device=A.device)
+        return A
+
+    def dense_matrix(self, mean: Tensor) -> Tensor:
+        """:math:`A_t` as a dense ``(..., 2m, 2m)`` matrix for posterior means ``(..., 2m)``
+        (``(2m, 2m)`` without a batch when ``num_basis == 1``)."""
+        check_last_dims("mean", mean, (2 * self.latent_obs_dim,))
+        return self._mix(mean, self.dense_basis())
+
     def blocks(self, mean: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The four ``(..., m, m)`` blocks of :math:`A_t` for posterior means ``(..., 2m)``.
 
         With ``num_basis == 1`` the blocks are ``(m, m)`` and broadcast over the batch.
         """
-        band = self.band.to(self.basis_11.dtype)
-        bases = [b * band for b in (self.basis_11, self.basis_12, self.basis_21, self.basis_22)]
-        if self.coefficient_net is None:
-            out = [b[0] for b in bases]
-        else:
-            alpha = self.coefficients(mean)
-            out = [torch.einsum("...k,kij->...ij", alpha, b) for b in bases]
-        if self.add_identity:
-            eye = torch.eye(self.latent_obs_dim, dtype=out[0].dtype, device=out[0].device)
-            out[0] = out[0] + eye
-            out[3] = out[3] + eye
-        return out[0], out[1], out[2], out[3]
+        A, m = self.dense_matrix(mean), self.latent_obs_dim
+        return A[..., :m, :m], A[..., :m, m:], A[..., m:, :m], A[..., m:, m:]
 
-    def dense_matrix(self, mean: Tensor) -> Tensor:
-        """:math:`A_t` as a dense ``(..., 2m, 2m)`` matrix (for tests and plots)."""
-        a11, a12, a21, a22 = self.blocks(mean)
-        top = torch.cat(torch.broadcast_tensors(a11, a12), dim=-1)
-        bot = torch.cat(torch.broadcast_tensors(a21, a22), dim=-1)
-        return torch.cat([top, bot], dim=-2)
+    def predictor(self) -> Callable[..., FactorizedBelief]:
+        """A predict function ``(post, causes=()) -> prior`` equal to :meth:`forward`, with the
+        parameter-only work (band masking of the basis, noise transform) done once. Use it inside
+        a time loop; call it again after every optimizer step."""
+        basis, q = self.dense_basis(), self.trans_var
+
+        def predict(post: FactorizedBelief, causes: Sequence[FactorizedBelief] = ()) -> FactorizedBelief:
+            A = self._mix(post.mean, basis)
+            return factorized_predict_from_matrix(post, A, q, causes, validate=False)
+
+        return predict
 
     def forward(self, post: FactorizedBelief, causes: Sequence[FactorizedBelief] = ()) -> FactorizedBelief:
         """Predict step, Eq. (rkn-predict): prior of the next step from the posterior ``post``."""
-        a11, a12, a21, a22 = self.blocks(post.mean)
-        return factorized_predict(post, a11, a12, a21, a22, self.trans_var, causes)
+        return self.predictor()(post, causes)
 
 
 class ObservationEncoder(nn.Module):
@@ -251,6 +274,12 @@ class RKN(nn.Module):
     returning extra independent causes for the predict step from ``t`` to ``t + 1`` (an action
     term in Chapter 4, a latent task in Chapter 5). :meth:`forward` is the filtering model of
     Chapter 3: it decodes posteriors.
+
+    ``diagonal_only=True`` is the ablation of Chapter 3: the side covariance :math:`\sigma^s` is
+    forced to zero after every predict step (and in the initial belief), so the covariance is
+    purely diagonal. The update, Eq. (rkn-update), then has zero gain for the lower half: the
+    memory units and their variances are never corrected by an observation and can only follow
+    the transition.
     """
 
     def __init__(
@@ -259,6 +288,7 @@ class RKN(nn.Module):
         transition: LocallyLinearTransition,
         decoder: nn.Module,
         init_var: float = 10.0,
+        diagonal_only: bool = False,
     ) -> None:
         super().__init__()
         if init_var <= 0:
@@ -266,6 +296,7 @@ class RKN(nn.Module):
         self.encoder, self.transition, self.decoder = encoder, transition, decoder
         self.latent_obs_dim = transition.latent_obs_dim
         self.init_var = init_var
+        self.diagonal_only = bool(diagonal_only)
 
     def initial_belief(self, batch_shape: Sequence[int], like: Tensor) -> FactorizedBelief:
         """``N(0, init_var · I)`` with zero side covariance, dtype/device of ``like``."""
@@ -290,15 +321,25 @@ class RKN(nn.Module):
         if m != self.latent_obs_dim:
             raise ValueError(f"w: expected latent size {self.latent_obs_dim}, got {m}")
         check_last_dims("w_var", w_var, (T, m))
+        if w_var.shape[0] != B:
+            raise ValueError(f"w_var: expected batch size {B}, got shape {tuple(w_var.shape)}")
         if mask is not None:
             mask = check_mask("mask", mask, (B, T))
+        if init is not None and not isinstance(init, FactorizedBelief):
+            raise ValueError(f"init: expected a FactorizedBelief, got {type(init).__name__}")
         prior = self.initial_belief((B,), w) if init is None else init
+        if self.diagonal_only:
+            prior = prior.drop_side()
+        # parameter-only work of the predict step is done once per sequence when available
+        predict = self.transition.predictor() if hasattr(self.transition, "predictor") else self.transition
         priors, posts, preds = [], [], []
         for t in range(T):
             post = factorized_update(prior, w[:, t], w_var[:, t],
                                      None if mask is None else mask[:, t], validate=False)
             causes = causes_fn(t, post) if causes_fn is not None else ()
-            nxt = self.transition(post, causes)
+            nxt = predict(post, causes)
+            if self.diagonal_only:
+                nxt = nxt.drop_side()
             priors.append(prior)
             posts.append(post)
             preds.append(nxt)
@@ -306,9 +347,20 @@ class RKN(nn.Module):
         return FilterOutput(FactorizedBelief.stack(priors), FactorizedBelief.stack(posts),
                             FactorizedBelief.stack(preds))
 
+    def encode(self, obs: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Encoder, Eq. (rkn-encoder): ``obs: (B, T, obs_dim)`` -> ``(w, w_var)`` each ``(B, T, m)``.
+
+        Missing frames (``mask`` False) are replaced by zeros before encoding, so that whatever
+        the data holds there (NaN, stale frames) cannot reach the outputs or the gradients.
+        """
+        check_tensor("obs", obs, 3)
+        if mask is not None:
+            mask = check_mask("mask", mask, tuple(obs.shape[:2]))
+            obs = torch.where(mask[..., None], obs, torch.zeros((), dtype=obs.dtype, device=obs.device))
+        return self.encoder(obs)
+
     def forward(self, obs: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Filtering: ``obs: (B, T, obs_dim)`` -> decoded posterior ``(mean, var)`` per step."""
-        check_tensor("obs", obs, 3)
-        w, w_var = self.encoder(obs)
+        w, w_var = self.encode(obs, mask)
         out = self.filter(w, w_var, mask)
         return self.decoder(out.posterior)

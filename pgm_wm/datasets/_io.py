@@ -65,7 +65,7 @@ def write_npz(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], meta: M
             info.compress_type = zipfile.ZIP_DEFLATED
             info.external_attr = 0o644 << 16
             buf = io.BytesIO()
-            np.lib.format.write_array(buf, np.ascontiguousarray(val), allow_pickle=False)
+            np.lib.format.write_array(buf, np.asarray(val, order="C"), allow_pickle=False)
             zf.writestr(info, buf.getvalue(), compress_type=zipfile.ZIP_DEFLATED, compresslevel=9)
     os.replace(tmp, path)
 

@@ -1,0 +1,394 @@
+r"""The action-conditional RKN (Chapter 4): a single-time-scale probabilistic world model.
+
+The ac-RKN is the RKN of Chapter 3 with **one additive term** in the predict step. Given the
+posterior :math:`\mathcal N(z_t^+, \Sigma_t^+)` and the executed action :math:`a_t`, the prior of
+the next step is the marginal of :math:`z_{t+1} = A_t z_t + b(a_t, z_t^+) + \varepsilon_t`,
+Eq. (acrkn-predict):
+
+.. math:: z^-_{t+1} = A_t z^+_t + b(a_t),\qquad \Sigma^-_{t+1} = A_t\Sigma^+_tA_t^\top + Q.
+
+The action is known, so it is a cause with zero variance (Eq. gauss-marginal with
+:math:`\Sigma_a = 0`): it moves the mean and leaves the covariance — and therefore the Kalman
+gain — untouched (:func:`pgm_wm.factorized.known_input`). Because the locally linear
+:math:`A_t` depends on the posterior *mean*, a different action history changes later
+covariances indirectly; with a state-independent :math:`A` (``num_basis=1``) the covariances of
+a whole run do not depend on the actions at all.
+
+Control models :math:`b` (all share ``forward(action (..., da), mean (..., 2m)) -> (..., 2m)``):
+
+* :class:`LinearControl`        :math:`b(a) = B a`;
+* :class:`LocallyLinearControl` :math:`b(a, z) = \sum_k \beta_k(z) B^{(k)} a`, softmax coefficients;
+* :class:`MLPControl`           :math:`b(a) = f(a)`, an MLP (the thesis' default);
+* :class:`ZeroControl`          :math:`b = 0` (the ac-RKN then *is* the RKN — a test).
+
+Prediction convention (:class:`AcRKN.forward`). Index ``t`` of the output is the prediction of
+:math:`o_{t+1}` from the observed :math:`o_{\le t}` and the actions :math:`a_{\le t}`; it is the
+decoded prior :math:`p(z_{t+1}\mid w_{\le t}, a_{\le t})`. With ``predict_differences`` the
+decoder outputs a *normalized difference* :math:`\delta_t` and (Eq. acrkn-diff)
+
+.. math:: \hat o_{t+1} = m_t + \mathrm{shift} + \mathrm{scale}\odot\delta_t,\qquad
+          m_t = \begin{cases} o_t & \text{if } o_t \text{ is observed (mask True)}\\
+                              \hat o_t & \text{otherwise (last prediction as memory)}\end{cases}
+
+with :math:`m_0 = 0` when :math:`o_0` is missing. ``shift`` and ``scale`` express the
+difference statistics in the units of the observations the model receives; for observations
+normalized with the training statistics, :func:`difference_scaling` gives
+``shift = diff_mean / obs_std`` and ``scale = diff_std / obs_std``. The memory is treated as
+known: the predictive variance is ``scale² · var(δ_t)``; it grows over missing steps because the
+latent prior's variance grows, which the decoder sees.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Mapping, Sequence
+
+import torch
+from torch import Tensor, nn
+
+from ._checks import check_last_dims, check_mask, check_tensor
+from .factorized import FactorizedBelief, known_input
+from .rkn import RKN, FilterOutput, LocallyLinearTransition, mlp
+
+__all__ = [
+    "LinearControl",
+    "LocallyLinearControl",
+    "MLPControl",
+    "ZeroControl",
+    "difference_scaling",
+    "DifferenceReadout",
+    "AcRKN",
+    "InverseDynamicsHead",
+    "inverse_dynamics",
+    "inverse_dynamics_loss",
+]
+
+ExtraCausesFn = Callable[[int, FactorizedBelief], Sequence[FactorizedBelief]]
+
+
+class _Control(nn.Module):
+    """Common input checks of the control models."""
+
+    def __init__(self, action_dim: int, latent_obs_dim: int) -> None:
+        super().__init__()
+        if action_dim <= 0 or latent_obs_dim <= 0:
+            raise ValueError(f"action_dim: need action_dim > 0 and latent_obs_dim > 0, got {action_dim}, {latent_obs_dim}")
+        self.action_dim, self.latent_obs_dim = action_dim, latent_obs_dim
+
+    def _check(self, action: Tensor, mean: Tensor) -> None:
+        check_last_dims("action", action, (self.action_dim,))
+        check_last_dims("mean", mean, (2 * self.latent_obs_dim,))
+
+
+class LinearControl(_Control):
+    r"""Linear control model :math:`b(a) = B a` with :math:`B\in\mathbb R^{2m\times d_a}`, Eq. (acrkn-control-linear)."""
+
+    def __init__(self, action_dim: int, latent_obs_dim: int, init_std: float = 0.1) -> None:
+        super().__init__(action_dim, latent_obs_dim)
+        self.B = nn.Parameter(init_std * torch.randn(2 * latent_obs_dim, action_dim))
+
+    def forward(self, action: Tensor, mean: Tensor) -> Tensor:
+        """``action: (..., da)``, ``mean: (..., 2m)`` (unused) -> ``(..., 2m)``."""
+        self._check(action, mean)
+        return action @ self.B.T
+
+
+class LocallyLinearControl(_Control):
+    r"""Locally linear control :math:`b(a, z) = \sum_{k=1}^K \beta_k(z)\,B^{(k)} a` with
+    :math:`\beta(z) = \mathrm{softmax}(Wz + c)`, Eq. (acrkn-control-local). ``mean`` is the
+    posterior mean :math:`z_t^+` (so :math:`b` stays a known quantity at predict time)."""
+
+    def __init__(self, action_dim: int, latent_obs_dim: int, num_basis: int = 15, init_std: float = 0.1) -> None:
+        super().__init__(action_dim, latent_obs_dim)
+        if num_basis <= 0:
+            raise ValueError(f"num_basis: must be positive, got {num_basis}")
+        self.num_basis = num_basis
+        self.basis = nn.Parameter(init_std * torch.randn(num_basis, 2 * latent_obs_dim, action_dim))
+        self.coefficient_net = nn.Linear(2 * latent_obs_dim, num_basis)
+
+    def coefficients(self, mean: Tensor) -> Tensor:
+        """:math:`\\beta(z)`: ``(..., K)``, non-negative, summing to one."""
+        return torch.softmax(self.coefficient_net(mean), dim=-1)
+
+    def forward(self, action: Tensor, mean: Tensor) -> Tensor:
+        """``action: (..., da)``, ``mean: (..., 2m)`` -> ``(..., 2m)``."""
+        self._check(action, mean)
+        per_basis = torch.einsum("kij,...j->...ki", self.basis, action)  # (..., K, 2m)
+        return (self.coefficients(mean).unsqueeze(-1) * per_basis).sum(-2)
+
+
+class MLPControl(_Control):
+    r"""Nonlinear control :math:`b(a) = f(a)`, an MLP with ReLU units, Eq. (acrkn-control-mlp).
+
+    The covariance never sees :math:`b`, so nothing forces it to be linear (the thesis' default).
+    """
+
+    def __init__(self, action_dim: int, latent_obs_dim: int, hidden: Sequence[int] = (120, 120, 120)) -> None:
+        super().__init__(action_dim, latent_obs_dim)
+        self.net = mlp(action_dim, hidden, 2 * latent_obs_dim)
+
+    def forward(self, action: Tensor, mean: Tensor) -> Tensor:
+        """``action: (..., da)``, ``mean: (..., 2m)`` (unused) -> ``(..., 2m)``."""
+        self._check(action, mean)
+        return self.net(action)
+
+
+class ZeroControl(_Control):
+    """:math:`b = 0`: the ac-RKN with this control model is exactly the RKN (used in tests)."""
+
+    def forward(self, action: Tensor, mean: Tensor) -> Tensor:
+        self._check(action, mean)
+        return torch.zeros_like(mean)
+
+
+def difference_scaling(stats: Mapping[str, Any]) -> tuple[Tensor, Tensor]:
+    """``(shift, scale)`` of :class:`DifferenceReadout` for observations normalized with ``stats``.
+
+    Differences :math:`o_{t+1}-o_t` in original units are standardized with ``diff_mean`` and
+    ``diff_std``; observations with ``obs_mean`` and ``obs_std``. A standardized difference
+    :math:`\\delta` is, in normalized-observation units, ``diff_mean/obs_std + (diff_std/obs_std) δ``.
+    """
+    for key in ("obs_std", "diff_mean", "diff_std"):
+        if key not in stats:
+            raise ValueError(f"stats: missing key {key!r}")
+    obs_std = torch.as_tensor(stats["obs_std"], dtype=torch.get_default_dtype())
+    shift = torch.as_tensor(stats["diff_mean"], dtype=obs_std.dtype) / obs_std
+    scale = torch.as_tensor(stats["diff_std"], dtype=obs_std.dtype) / obs_std
+    if not bool((scale > 0).all()):
+        raise ValueError("stats: diff_std / obs_std must be positive")
+    return shift, scale
+
+
+class DifferenceReadout(nn.Module):
+    r"""Turn decoded normalized differences into next-observation predictions, Eq. (acrkn-diff).
+
+    ``predict_differences=False``: the decoder output *is* the prediction of :math:`o_{t+1}`.
+    ``predict_differences=True``: :math:`\hat o_{t+1} = m_t + \mathrm{shift} + \mathrm{scale}\odot\delta_t`
+    with the memory :math:`m_t` = the observation if observed, else the previous prediction.
+    Shared by :class:`AcRKN` and the recurrent baselines (:mod:`pgm_wm.baselines`).
+    """
+
+    def __init__(self, obs_dim: int, predict_differences: bool = True,
+                 shift: Tensor | Sequence[float] | None = None,
+                 scale: Tensor | Sequence[float] | None = None) -> None:
+        super().__init__()
+        self.obs_dim, self.predict_differences = obs_dim, predict_differences
+        shift_t = torch.zeros(obs_dim) if shift is None else torch.as_tensor(shift, dtype=torch.get_default_dtype()).clone()
+        scale_t = torch.ones(obs_dim) if scale is None else torch.as_tensor(scale, dtype=torch.get_default_dtype()).clone()
+        if shift_t.shape != (obs_dim,):
+            raise ValueError(f"shift: expected shape ({obs_dim},), got {tuple(shift_t.shape)}")
+        if scale_t.shape != (obs_dim,) or not bool((scale_t > 0).all()):
+            raise ValueError(f"scale: expected a positive vector of shape ({obs_dim},)")
+        self.register_buffer("shift", shift_t)
+        self.register_buffer("scale", scale_t)
+
+    def step(self, memory: Tensor, delta_mean: Tensor, delta_var: Tensor) -> tuple[Tensor, Tensor]:
+        """One step: ``memory, delta_mean, delta_var: (..., do)`` -> prediction ``(mean, var)``."""
+        if not self.predict_differences:
+            return delta_mean, delta_var
+        shift, scale = self.shift.to(delta_mean.dtype), self.scale.to(delta_mean.dtype)
+        return memory + shift + scale * delta_mean, scale * scale * delta_var
+
+    @staticmethod
+    def memory(obs_t: Tensor, mask_t: Tensor | None, last_pred: Tensor | None) -> Tensor:
+        """:math:`m_t`: ``obs_t`` where ``mask_t`` else ``last_pred`` (zeros if there is none)."""
+        if mask_t is None:
+            return obs_t
+        prev = torch.zeros_like(obs_t) if last_pred is None else last_pred
+        return torch.where(mask_t[..., None], obs_t, prev)
+
+    def forward(self, obs: Tensor, mask: Tensor | None, delta_mean: Tensor, delta_var: Tensor) -> tuple[Tensor, Tensor]:
+        """Whole sequence: ``obs, delta_mean, delta_var: (B, T, do)``, ``mask: (B, T)`` -> ``(mean, var)``."""
+        if not self.predict_differences:
+            return delta_mean, delta_var
+        if mask is None:
+            return self.step(obs, delta_mean, delta_var)
+        means, vars_ = [], []
+        last = None
+        for t in range(obs.shape[1]):
+            mem = self.memory(obs[:, t], mask[:, t], last)
+            mu, var = self.step(mem, delta_mean[:, t], delta_var[:, t])
+            means.append(mu)
+            vars_.append(var)
+            last = mu
+        return torch.stack(means, 1), torch.stack(vars_, 1)
+
+
+def _check_sequences(obs: Tensor, actions: Tensor | None, mask: Tensor | None,
+                     obs_dim: int | None = None, action_dim: int | None = None) -> Tensor | None:
+    """Check ``obs: (B, T, do)``, ``actions: (B, T, da)``, ``mask: (B, T)``; return the bool mask."""
+    check_tensor("obs", obs, 3)
+    B, T = obs.shape[:2]
+    if obs_dim is not None:
+        check_last_dims("obs", obs, (obs_dim,))
+    if actions is not None:
+        check_tensor("actions", actions, 3)
+        if tuple(actions.shape[:2]) != (B, T):
+            raise ValueError(f"actions: expected leading shape {(B, T)}, got {tuple(actions.shape)}")
+        if action_dim is not None:
+            check_last_dims("actions", actions, (action_dim,))
+    if mask is not None:
+        mask = check_mask("mask", mask, (B, T))
+    return mask
+
+
+class AcRKN(nn.Module):
+    """Action-conditional RKN: ``encoder -> [update, predict + b(a)]* -> decoder`` (Chapter 4).
+
+    Composes an :class:`pgm_wm.rkn.RKN` (attribute ``rkn``) and a control model; the control
+    term enters the RKN's predict step as a zero-variance cause through ``causes_fn``.
+
+    Args:
+        encoder: ``obs (..., do) -> (w, w_var) (..., m)``, e.g. :class:`pgm_wm.rkn.ObservationEncoder`.
+        transition: :class:`pgm_wm.rkn.LocallyLinearTransition`.
+        control: one of the control models of this module.
+        decoder: ``FactorizedBelief -> (mean, var) (..., do)``, e.g. :class:`pgm_wm.rkn.BeliefDecoder`.
+        init_var: initial belief variance.
+        predict_differences, diff_shift, diff_scale: see :class:`DifferenceReadout`.
+    """
+
+    def __init__(
+        self,
+        encoder: nn.Module,
+        transition: LocallyLinearTransition,
+        control: nn.Module,
+        decoder: nn.Module,
+        init_var: float = 10.0,
+        predict_differences: bool = True,
+        diff_shift: Tensor | Sequence[float] | None = None,
+        diff_scale: Tensor | Sequence[float] | None = None,
+    ) -> None:
+        super().__init__()
+        self.rkn = RKN(encoder, transition, decoder, init_var)
+        self.control = control
+        obs_dim = getattr(decoder, "out_dim", None)
+        if obs_dim is None:
+            raise ValueError("decoder: needs an `out_dim` attribute (the observation size)")
+        self.obs_dim = obs_dim
+        self.latent_obs_dim = transition.latent_obs_dim
+        if getattr(control, "latent_obs_dim", self.latent_obs_dim) != self.latent_obs_dim:
+            raise ValueError("control: latent_obs_dim differs from the transition's")
+        self.readout = DifferenceReadout(obs_dim, predict_differences, diff_shift, diff_scale)
+
+    @property
+    def encoder(self) -> nn.Module:
+        return self.rkn.encoder
+
+    @property
+    def transition(self) -> LocallyLinearTransition:
+        return self.rkn.transition
+
+    @property
+    def decoder(self) -> nn.Module:
+        return self.rkn.decoder
+
+    @property
+    def predict_differences(self) -> bool:
+        return self.readout.predict_differences
+
+    def filter(
+        self,
+        obs: Tensor,
+        actions: Tensor | None,
+        mask: Tensor | None = None,
+        extra_causes_fn: ExtraCausesFn | None = None,
+        init: FactorizedBelief | None = None,
+    ) -> FilterOutput:
+        r"""Encode ``obs: (B, T, do)`` and filter with the control term in every predict step.
+
+        ``actions: (B, T, da)``: ``actions[:, t]`` acts in the predict step ``t -> t+1``. ``None``
+        drops the control term (the plain RKN; used for the no-feedback inverse-dynamics ablation).
+        ``mask: (B, T)`` True = observed; observations at masked steps are zeroed before
+        encoding, so their values can never reach the beliefs or the gradients.
+        ``extra_causes_fn(t, posterior_t)`` returns further independent causes for the same
+        predict step (Chapter 5 adds a latent task there).
+        """
+        mask = _check_sequences(obs, actions, mask)
+        if mask is not None:
+            obs = torch.where(mask[..., None], obs, torch.zeros((), dtype=obs.dtype))
+        w, w_var = self.rkn.encoder(obs)
+
+        def causes_fn(t: int, post: FactorizedBelief) -> list[FactorizedBelief]:
+            causes: list[FactorizedBelief] = []
+            if actions is not None:
+                causes.append(known_input(self.control(actions[:, t], post.mean)))
+            if extra_causes_fn is not None:
+                causes.extend(extra_causes_fn(t, post))
+            return causes
+
+        return self.rkn.filter(w, w_var, mask, causes_fn, init)
+
+    def decode_predictions(self, out: FilterOutput, obs: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
+        """Decode ``out.predicted`` and apply Eq. (acrkn-diff): ``(mean, var)`` each ``(B, T, do)``."""
+        d_mean, d_var = self.rkn.decoder(out.predicted)
+        return self.readout(obs, mask, d_mean, d_var)
+
+    def forward(
+        self,
+        obs: Tensor,
+        actions: Tensor,
+        mask: Tensor | None = None,
+        extra_causes_fn: ExtraCausesFn | None = None,
+    ) -> tuple[Tensor, Tensor]:
+        """Predict :math:`o_{t+1}` for every ``t``: ``(mean, var)`` each ``(B, T, do)``.
+
+        Uses only observations with ``mask`` True at indices ``<= t`` and actions ``<= t``.
+        """
+        mask = _check_sequences(obs, actions, mask, self.obs_dim)
+        out = self.filter(obs, actions, mask, extra_causes_fn)
+        return self.decode_predictions(out, obs, mask)
+
+
+class InverseDynamicsHead(nn.Module):
+    r"""Action decoder for inverse dynamics (thesis appendix A), Eq. (acrkn-inverse):
+
+    .. math:: \hat a_t = g\big([z_t^+;\; w_{t+1}]\big),
+
+    from the posterior mean :math:`z_t^+` (which has seen :math:`o_{\le t}`, :math:`a_{<t}`) and the
+    encoded desired next observation :math:`w_{t+1} = \mathrm{enc}(o_{t+1})`.
+    """
+
+    def __init__(self, latent_obs_dim: int, action_dim: int, hidden: Sequence[int] = (64,)) -> None:
+        super().__init__()
+        self.latent_obs_dim, self.action_dim = latent_obs_dim, action_dim
+        self.net = mlp(3 * latent_obs_dim, hidden, action_dim)
+
+    def forward(self, post_mean: Tensor, next_w: Tensor) -> Tensor:
+        """``post_mean: (..., 2m)``, ``next_w: (..., m)`` -> ``(..., da)``."""
+        check_last_dims("post_mean", post_mean, (2 * self.latent_obs_dim,))
+        check_last_dims("next_w", next_w, (self.latent_obs_dim,))
+        return self.net(torch.cat([post_mean, next_w], dim=-1))
+
+
+def inverse_dynamics(
+    model: AcRKN, head: InverseDynamicsHead, obs: Tensor, actions: Tensor, action_feedback: bool = True,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Joint inverse/forward pass over fully observed ``obs: (B, T, do)``, ``actions: (B, T, da)``.
+
+    Returns ``(action_pred (B, T-1, da), fwd_mean (B, T, do), fwd_var (B, T, do))``: ``action_pred[:, t]``
+    estimates :math:`a_t` from :math:`z_t^+` and :math:`o_{t+1}`; the forward outputs predict
+    :math:`o_{t+1}` as in :meth:`AcRKN.forward`. With ``action_feedback`` the executed action is fed
+    to the predict step *after* it was decoded (so :math:`\\hat a_t` never sees :math:`a_t`);
+    without it the filter has no control term.
+    """
+    _check_sequences(obs, actions, None, model.obs_dim)
+    if obs.shape[1] < 2:
+        raise ValueError(f"obs: need at least 2 time steps, got {obs.shape[1]}")
+    out = model.filter(obs, actions if action_feedback else None, None)
+    w_next, _ = model.encoder(obs[:, 1:])
+    a_hat = head(out.posterior.mean[:, :-1], w_next)
+    fwd_mean, fwd_var = model.decode_predictions(out, obs, None)
+    return a_hat, fwd_mean, fwd_var
+
+
+def inverse_dynamics_loss(
+    model: AcRKN, head: InverseDynamicsHead, obs: Tensor, actions: Tensor,
+    lam: float = 0.1, action_feedback: bool = True,
+) -> Tensor:
+    r"""Eq. (acrkn-inverse-loss): :math:`\mathrm{MSE}(\hat a_t, a_t) + \lambda\,\mathrm{MSE}(\hat o_{t+1}, o_{t+1})`,
+    averaged over :math:`t = 0..T-2` and all dimensions (units of the inputs, e.g. normalized)."""
+    if lam < 0:
+        raise ValueError(f"lam: must be non-negative, got {lam}")
+    a_hat, f_mean, _ = inverse_dynamics(model, head, obs, actions, action_feedback)
+    inv = ((a_hat - actions[:, :-1]) ** 2).mean()
+    fwd = ((f_mean[:, :-1] - obs[:, 1:]) ** 2).mean()
+    return inv + lam * fwd

@@ -1,0 +1,205 @@
+r"""Baseline world models with the same interface and output convention as the ac-RKN.
+
+Every model here has ``forward(obs (B, T, do), actions (B, T, da), mask (B, T)) -> (mean, var)``
+with index ``t`` predicting :math:`o_{t+1}` from the observed :math:`o_{\le t}` and
+:math:`a_{\le t}`, and the same difference/memory readout as :class:`pgm_wm.acrkn.AcRKN`
+(:class:`pgm_wm.acrkn.DifferenceReadout`, Eq. acrkn-diff). All output a diagonal Gaussian
+(variance via ``elu + 1``) so that they can be trained and scored with the same NLL.
+
+Actions enter these models *as inputs* (concatenated to the observation), the usual practice
+for RNNs — the alternative the ac-RKN is compared against. A model of this kind has no way to
+"skip" a missing observation, so at a masked step it is fed its own last prediction instead
+(the memory :math:`m_t` of Eq. acrkn-diff) together with a 0/1 flag telling it whether the
+input is a real observation; this is what makes open-loop multi-step prediction possible.
+
+* :class:`RKNActionsAsObs` — the Chapter 3 RKN whose encoder sees :math:`[m_t, a_t, \text{flag}]`;
+  the Kalman update always runs (the "fake observation" graphical model).
+* :class:`LSTMBaseline`, :class:`GRUBaseline` — encoder MLP, recurrent cell, Gaussian head.
+* :class:`FFNNBaseline` — a feed-forward net on a window of the last ``window`` inputs (a
+  Markov-``window`` model); missing observations are replaced by its own predictions.
+
+Chapter 6 appends a Transformer baseline at the end of this file.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+from torch import Tensor, nn
+
+from .acrkn import DifferenceReadout, _check_sequences
+from .factorized import FactorizedBelief, factorized_update
+from .rkn import BeliefDecoder, LocallyLinearTransition, ObservationEncoder, elup1, mlp
+
+__all__ = [
+    "FeedbackModel",
+    "RKNActionsAsObs",
+    "LSTMBaseline",
+    "GRUBaseline",
+    "FFNNBaseline",
+]
+
+
+class FeedbackModel(nn.Module):
+    """Base class: a step-by-step world model fed :math:`[m_t, a_t, \\text{flag}_t]` at every step.
+
+    Subclasses implement :meth:`init_state` and :meth:`step` (returning the normalized
+    difference's mean and variance); :meth:`forward` runs the loop with the memory rule.
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int, predict_differences: bool = True,
+                 diff_shift: Tensor | Sequence[float] | None = None,
+                 diff_scale: Tensor | Sequence[float] | None = None) -> None:
+        super().__init__()
+        if obs_dim <= 0 or action_dim <= 0:
+            raise ValueError(f"obs_dim: need obs_dim > 0 and action_dim > 0, got {obs_dim}, {action_dim}")
+        self.obs_dim, self.action_dim = obs_dim, action_dim
+        self.input_dim = obs_dim + action_dim + 1
+        self.readout = DifferenceReadout(obs_dim, predict_differences, diff_shift, diff_scale)
+
+    def init_state(self, batch: int, like: Tensor) -> object:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def step(self, state: object, x: Tensor) -> tuple[object, Tensor, Tensor]:  # pragma: no cover
+        raise NotImplementedError
+
+    def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """``(mean, var)`` each ``(B, T, do)``; index ``t`` predicts ``obs[:, t + 1]``."""
+        mask = _check_sequences(obs, actions, mask, self.obs_dim, self.action_dim)
+        B, T = obs.shape[:2]
+        if mask is None:
+            mask = torch.ones(B, T, dtype=torch.bool, device=obs.device)
+        obs = torch.where(mask[..., None], obs, torch.zeros((), dtype=obs.dtype))
+        state = self.init_state(B, obs)
+        last: Tensor | None = None
+        means, vars_ = [], []
+        for t in range(T):
+            mem = DifferenceReadout.memory(obs[:, t], mask[:, t], last)
+            x = torch.cat([mem, actions[:, t], mask[:, t, None].to(obs.dtype)], dim=-1)
+            state, d_mean, d_var = self.step(state, x)
+            mu, var = self.readout.step(mem, d_mean, d_var)
+            means.append(mu)
+            vars_.append(var)
+            last = mu
+        return torch.stack(means, 1), torch.stack(vars_, 1)
+
+
+class _GaussianHead(nn.Module):
+    """Features ``(..., h)`` -> ``(mean, var)`` ``(..., do)``, var = elu + 1."""
+
+    def __init__(self, in_dim: int, out_dim: int, hidden: Sequence[int]) -> None:
+        super().__init__()
+        self.mean_net = mlp(in_dim, hidden, out_dim)
+        self.var_net = mlp(in_dim, hidden, out_dim)
+
+    def forward(self, h: Tensor) -> tuple[Tensor, Tensor]:
+        return self.mean_net(h), elup1(self.var_net(h))
+
+
+class RKNActionsAsObs(FeedbackModel):
+    """The Chapter 3 RKN with actions treated as (part of) the observation.
+
+    Encoder input :math:`[m_t, a_t, \\text{flag}_t]`; the factorized Kalman update runs at every step
+    (the action has to get in somehow); predict without a control term; the decoder reads the
+    prior :math:`z^-_{t+1}` as in the ac-RKN. Same sizes as the ac-RKN it is compared with.
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int, latent_obs_dim: int, num_basis: int = 15,
+                 bandwidth: int = 3, enc_hidden: Sequence[int] = (64,), dec_hidden: Sequence[int] = (64,),
+                 init_var: float = 10.0, **readout_kw) -> None:
+        super().__init__(obs_dim, action_dim, **readout_kw)
+        self.latent_obs_dim, self.init_var = latent_obs_dim, init_var
+        self.encoder = ObservationEncoder(self.input_dim, latent_obs_dim, enc_hidden)
+        self.transition = LocallyLinearTransition(latent_obs_dim, num_basis, bandwidth)
+        self.decoder = BeliefDecoder(latent_obs_dim, obs_dim, dec_hidden, dec_hidden)
+
+    def init_state(self, batch: int, like: Tensor) -> FactorizedBelief:
+        return FactorizedBelief.isotropic((batch,), self.latent_obs_dim, self.init_var, like.dtype, like.device)
+
+    def step(self, state: FactorizedBelief, x: Tensor) -> tuple[FactorizedBelief, Tensor, Tensor]:
+        w, w_var = self.encoder(x)
+        post = factorized_update(state, w, w_var, validate=False)
+        prior = self.transition(post)
+        d_mean, d_var = self.decoder(prior)
+        return prior, d_mean, d_var
+
+
+class _RNNBaseline(FeedbackModel):
+    cell_type: type[nn.Module] = nn.GRUCell
+
+    def __init__(self, obs_dim: int, action_dim: int, hidden: int = 64, enc_hidden: Sequence[int] = (64,),
+                 dec_hidden: Sequence[int] = (64,), **readout_kw) -> None:
+        super().__init__(obs_dim, action_dim, **readout_kw)
+        if hidden <= 0:
+            raise ValueError(f"hidden: must be positive, got {hidden}")
+        self.hidden = hidden
+        layers: list[nn.Module] = []
+        d = self.input_dim
+        for h in enc_hidden:
+            layers += [nn.Linear(d, h), nn.ReLU()]
+            d = h
+        self.encoder = nn.Sequential(*layers)
+        self.cell = self.cell_type(d, hidden)
+        self.head = _GaussianHead(hidden, obs_dim, dec_hidden)
+
+
+class LSTMBaseline(_RNNBaseline):
+    """LSTM world model: ``MLP encoder -> LSTMCell(hidden) -> Gaussian head``."""
+
+    cell_type = nn.LSTMCell
+
+    def init_state(self, batch: int, like: Tensor) -> tuple[Tensor, Tensor]:
+        z = torch.zeros(batch, self.hidden, dtype=like.dtype, device=like.device)
+        return z, z.clone()
+
+    def step(self, state: tuple[Tensor, Tensor], x: Tensor) -> tuple[tuple[Tensor, Tensor], Tensor, Tensor]:
+        h, c = self.cell(self.encoder(x), state)
+        mean, var = self.head(h)
+        return (h, c), mean, var
+
+
+class GRUBaseline(_RNNBaseline):
+    """GRU world model: ``MLP encoder -> GRUCell(hidden) -> Gaussian head``."""
+
+    cell_type = nn.GRUCell
+
+    def init_state(self, batch: int, like: Tensor) -> Tensor:
+        return torch.zeros(batch, self.hidden, dtype=like.dtype, device=like.device)
+
+    def step(self, state: Tensor, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        h = self.cell(self.encoder(x), state)
+        mean, var = self.head(h)
+        return h, mean, var
+
+
+class FFNNBaseline(FeedbackModel):
+    """Feed-forward world model on the last ``window`` inputs :math:`[m_s, a_s, \\text{flag}_s]_{s=t-window+1..t}`.
+
+    Before the sequence starts the window is filled with copies of the first input.
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int, window: int = 5, hidden: Sequence[int] = (64, 64),
+                 **readout_kw) -> None:
+        super().__init__(obs_dim, action_dim, **readout_kw)
+        if window <= 0:
+            raise ValueError(f"window: must be positive, got {window}")
+        self.window = window
+        layers: list[nn.Module] = []
+        d = window * self.input_dim
+        for h in hidden[:-1]:
+            layers += [nn.Linear(d, h), nn.ReLU()]
+            d = h
+        self.trunk = nn.Sequential(*layers)
+        self.head = _GaussianHead(d, obs_dim, hidden[-1:])
+
+    def init_state(self, batch: int, like: Tensor) -> Tensor | None:
+        return None
+
+    def step(self, state: Tensor | None, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        if state is None:
+            state = x.unsqueeze(1).expand(-1, self.window, -1)
+        else:
+            state = torch.cat([state[:, 1:], x.unsqueeze(1)], dim=1)
+        mean, var = self.head(self.trunk(state.reshape(state.shape[0], -1)))
+        return state, mean, var

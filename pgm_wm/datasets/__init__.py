@@ -1,0 +1,24 @@
+"""Bundled datasets for the book: small, seeded, offline stand-ins for the thesis' robot logs.
+
+>>> from pgm_wm.datasets import load
+>>> data = load("hysteresis_arm", "train")      # doctest: +SKIP
+>>> data.obs.shape, data.actions.shape           # (n, T, 2), (n, T, 2)  # doctest: +SKIP
+
+Datasets (see ``data/README.md`` for equations, sizes and provenance):
+
+- ``nile`` (ch. 1): the real Nile flow series 1871-1970, ``obs (1, 100, 1)``;
+- ``tracking`` (ch. 1): 2-D constant-velocity target, noisy positions, some missing;
+- ``pendulum`` (ch. 3): 24x24 images of a damped stochastic pendulum with
+  random-walk corruption, rendered at load time by :func:`render_pendulum`;
+- ``hysteresis_arm`` (ch. 4): pneumatic-muscle-like joints, angles only, non-Markov;
+- ``payload_arm`` (ch. 2, 5): PD-controlled 2-link arm with a tip payload, held-out
+  interpolation/extrapolation payloads and switching payloads;
+- ``drift_arm`` (ch. 6): the same arm over 40 s episodes with a slowly drifting payload.
+
+Regenerate every file with ``python -m pgm_wm.datasets build``.
+"""
+
+from .loader import ACTION_OPTIONS, DATASET_NAMES, SPLITS, SequenceData, data_dir, load
+from .pendulum import render_pendulum
+
+__all__ = ["load", "SequenceData", "DATASET_NAMES", "SPLITS", "ACTION_OPTIONS", "render_pendulum", "data_dir"]

@@ -1,0 +1,269 @@
+r"""Recurrent-network filters: the LSTM / GRU baselines of Chapter 3, and a small fit loop.
+
+A :class:`RecurrentFilter` sees exactly what the RKN sees: the encoder's latent observation
+:math:`w_t` and its variance :math:`\sigma^{obs}_t` (Eq. rkn-encoder), with missing frames
+zeroed and flagged. Instead of a Kalman update and predict it runs a gated recurrent cell over
+:math:`x_t = [\,m_t w_t;\ m_t \sigma^{obs}_t;\ m_t\,]` (:math:`m_t\in\{0,1\}` the mask) and decodes
+the hidden state :math:`h_t` with a Gaussian head into a mean and a variance. Nothing in the cell
+is probabilistic: whatever uncertainty it reports is learned from the loss alone.
+
+:func:`gaussian_nll` is the per-dimension Gaussian negative log-likelihood (Eq. rkn-loss)
+
+.. math:: \ell(y\mid\mu,\sigma^2) = \tfrac12\big[\log 2\pi + \log\sigma^2 + (y-\mu)^2/\sigma^2\big],
+
+averaged over all entries; :func:`fit_filter` minimises it with Adam and keeps the parameters
+of the epoch with the best validation NLL; :func:`evaluate_filter` reports RMSE and NLL.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import torch
+from torch import Tensor, nn
+
+from ._checks import check_last_dims, check_mask, check_tensor
+from .rkn import elup1, mlp
+
+__all__ = [
+    "GaussianHead",
+    "RecurrentFilter",
+    "recurrent_hidden_for_budget",
+    "count_parameters",
+    "gaussian_nll",
+    "FilterData",
+    "FitHistory",
+    "fit_filter",
+    "predict_filter",
+    "evaluate_filter",
+]
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+class GaussianHead(nn.Module):
+    r"""Decoder of a deterministic hidden state: ``h -> (mean, var)``, ``var = elu(·) + 1``.
+
+    The counterpart of :class:`pgm_wm.rkn.BeliefDecoder` for a recurrent network; both use two
+    MLPs with the same hidden sizes, so the baselines and the RKN share their decoder shape.
+    """
+
+    def __init__(
+        self,
+        in_dim: int,
+        out_dim: int,
+        hidden: Sequence[int] = (64,),
+        var_hidden: Sequence[int] = (64,),
+        activation: type[nn.Module] = nn.ReLU,
+    ) -> None:
+        super().__init__()
+        if in_dim <= 0 or out_dim <= 0:
+            raise ValueError(f"out_dim: need in_dim > 0 and out_dim > 0, got {in_dim}, {out_dim}")
+        self.in_dim, self.out_dim = in_dim, out_dim
+        self.mean_net = mlp(in_dim, hidden, out_dim, activation)
+        self.var_net = mlp(in_dim, var_hidden, out_dim, activation)
+
+    def forward(self, h: Tensor) -> tuple[Tensor, Tensor]:
+        """``h: (..., in_dim)`` -> ``(mean, var)`` each ``(..., out_dim)``."""
+        check_last_dims("h", h, (self.in_dim,))
+        return self.mean_net(h), elup1(self.var_net(h))
+
+
+class RecurrentFilter(nn.Module):
+    """LSTM or GRU filter over the encoder's ``(w, w_var)`` with the same masking as the RKN.
+
+    Args:
+        encoder: maps ``obs: (B, T, obs_dim)`` to ``(w, w_var)`` each ``(B, T, m)`` (e.g. a
+            :class:`pgm_wm.rkn.ObservationEncoder`; it must expose ``latent_obs_dim``).
+        cell_type: ``"lstm"`` or ``"gru"``.
+        hidden: size of the recurrent state.
+        decoder: maps ``(B, T, hidden)`` to ``(mean, var)``, e.g. :class:`GaussianHead`.
+    """
+
+    def __init__(self, encoder: nn.Module, cell_type: str = "lstm", hidden: int = 32,
+                 decoder: nn.Module | None = None, out_dim: int | None = None) -> None:
+        super().__init__()
+        if cell_type not in ("lstm", "gru"):
+            raise ValueError(f"cell_type: expected 'lstm' or 'gru', got {cell_type!r}")
+        if hidden <= 0:
+            raise ValueError(f"hidden: must be positive, got {hidden}")
+        m = getattr(encoder, "latent_obs_dim", None)
+        if not isinstance(m, int) or m <= 0:
+            raise ValueError("encoder: must expose a positive integer attribute latent_obs_dim")
+        if decoder is None:
+            if out_dim is None:
+                raise ValueError("out_dim: required when no decoder is given")
+            decoder = GaussianHead(hidden, out_dim)
+        self.encoder, self.decoder = encoder, decoder
+        self.cell_type, self.hidden, self.latent_obs_dim = cell_type, hidden, m
+        rnn = nn.LSTM if cell_type == "lstm" else nn.GRU
+        self.rnn = rnn(input_size=2 * m + 1, hidden_size=hidden, batch_first=True)
+
+    def filter(self, w: Tensor, w_var: Tensor, mask: Tensor | None = None) -> Tensor:
+        """Hidden states ``(B, T, hidden)`` from ``w, w_var: (B, T, m)`` and ``mask: (B, T)``."""
+        check_tensor("w", w, 3)
+        B, T, m = w.shape
+        if m != self.latent_obs_dim:
+            raise ValueError(f"w: expected latent size {self.latent_obs_dim}, got {m}")
+        if tuple(w_var.shape) != (B, T, m):
+            raise ValueError(f"w_var: expected shape {(B, T, m)}, got {tuple(w_var.shape)}")
+        if mask is None:
+            flag = torch.ones(B, T, 1, dtype=w.dtype, device=w.device)
+        else:
+            flag = check_mask("mask", mask, (B, T)).to(w.dtype)[..., None]
+        x = torch.cat([w * flag, w_var * flag, flag], dim=-1)
+        h, _ = self.rnn(x)
+        return h
+
+    def forward(self, obs: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """``obs: (B, T, obs_dim)`` -> ``(mean, var)`` per step; missing frames are zeroed first."""
+        check_tensor("obs", obs, 3)
+        if mask is not None:
+            mask = check_mask("mask", mask, tuple(obs.shape[:2]))
+            obs = torch.where(mask[..., None], obs, torch.zeros((), dtype=obs.dtype, device=obs.device))
+        w, w_var = self.encoder(obs)
+        return self.decoder(self.filter(w, w_var, mask))
+
+
+def count_parameters(module: nn.Module) -> int:
+    """Number of trainable scalars of ``module``."""
+    return sum(p.numel() for p in module.parameters() if p.requires_grad)
+
+
+def recurrent_hidden_for_budget(cell_type: str, input_dim: int, budget: int) -> int:
+    """Largest hidden size whose LSTM/GRU layer has at most ``budget`` parameters.
+
+    A layer with ``g`` gates (4 for LSTM, 3 for GRU) has ``g (h (input_dim + h) + 2 h)``
+    parameters (PyTorch keeps two bias vectors). Returns at least 1.
+    """
+    gates = {"lstm": 4, "gru": 3}.get(cell_type)
+    if gates is None:
+        raise ValueError(f"cell_type: expected 'lstm' or 'gru', got {cell_type!r}")
+    if input_dim <= 0:
+        raise ValueError(f"input_dim: must be positive, got {input_dim}")
+    h = 1
+    while gates * ((h + 1) * (input_dim + h + 1) + 2 * (h + 1)) <= budget:
+        h += 1
+    return h
+
+
+def gaussian_nll(mean: Tensor, var: Tensor, target: Tensor) -> Tensor:
+    r"""Mean Gaussian negative log-likelihood per entry, Eq. (rkn-loss); all shapes equal."""
+    if mean.shape != target.shape or var.shape != target.shape:
+        raise ValueError(f"target: shapes differ (mean {tuple(mean.shape)}, var {tuple(var.shape)}, "
+                         f"target {tuple(target.shape)})")
+    return 0.5 * (_LOG_2PI + torch.log(var) + (target - mean) ** 2 / var).mean()
+
+
+@dataclass(frozen=True)
+class FilterData:
+    """A filtering data set as tensors: ``obs (n, T, d)``, ``mask (n, T)`` bool, ``targets (n, T, k)``."""
+
+    obs: Tensor
+    mask: Tensor
+    targets: Tensor
+
+    def __post_init__(self) -> None:
+        check_tensor("obs", self.obs, 3)
+        check_mask("mask", self.mask, tuple(self.obs.shape[:2]))
+        check_tensor("targets", self.targets, 3)
+        if tuple(self.targets.shape[:2]) != tuple(self.obs.shape[:2]):
+            raise ValueError(f"targets: expected leading shape {tuple(self.obs.shape[:2])}, "
+                             f"got {tuple(self.targets.shape)}")
+
+    def __len__(self) -> int:
+        return self.obs.shape[0]
+
+    def subset(self, index: Tensor | slice) -> "FilterData":
+        return FilterData(self.obs[index], self.mask[index], self.targets[index])
+
+
+@dataclass
+class FitHistory:
+    """Per-epoch training NLL and validation NLL/RMSE; ``best_epoch`` is the kept one (0-based)."""
+
+    train_nll: list[float] = field(default_factory=list)
+    valid_nll: list[float] = field(default_factory=list)
+    valid_rmse: list[float] = field(default_factory=list)
+    best_epoch: int = -1
+    seconds: float = 0.0
+
+
+@torch.no_grad()
+def predict_filter(model: nn.Module, data: FilterData, batch_size: int = 64) -> tuple[Tensor, Tensor]:
+    """``model(obs, mask)`` over ``data`` in batches without gradients -> ``(mean, var)``."""
+    was_training = model.training
+    model.eval()
+    means, variances = [], []
+    for i in range(0, len(data), batch_size):
+        mu, var = model(data.obs[i:i + batch_size], data.mask[i:i + batch_size])
+        means.append(mu)
+        variances.append(var)
+    model.train(was_training)
+    return torch.cat(means), torch.cat(variances)
+
+
+def evaluate_filter(model: nn.Module, data: FilterData, batch_size: int = 64) -> dict[str, float]:
+    """Root mean squared error and mean Gaussian NLL of ``model(obs, mask)`` on every step."""
+    mean, var = predict_filter(model, data, batch_size)
+    return {"rmse": float(((mean - data.targets) ** 2).mean().sqrt()),
+            "nll": float(gaussian_nll(mean, var, data.targets))}
+
+
+def fit_filter(
+    model: nn.Module,
+    train: FilterData,
+    valid: FilterData,
+    epochs: int = 10,
+    batch_size: int = 32,
+    lr: float = 3e-3,
+    clip: float = 5.0,
+    seed: int = 0,
+    progress: bool = False,
+) -> FitHistory:
+    """Train ``model(obs, mask) -> (mean, var)`` by minimising :func:`gaussian_nll` with Adam.
+
+    Each epoch visits the training sequences once in a seeded random order, clipping the
+    gradient norm at ``clip``. After each epoch the validation NLL is computed; at the end the
+    parameters of the best validation epoch are restored (model selection on the validation
+    split, never on the test split).
+    """
+    if epochs <= 0 or batch_size <= 0 or lr <= 0:
+        raise ValueError(f"epochs: epochs, batch_size and lr must be positive, got {epochs}, {batch_size}, {lr}")
+    gen = torch.Generator().manual_seed(seed)
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    hist = FitHistory()
+    best_state, best = None, float("inf")
+    start = time.perf_counter()
+    for epoch in range(epochs):
+        model.train()
+        order = torch.randperm(len(train), generator=gen)
+        total, count = 0.0, 0
+        for i in range(0, len(train), batch_size):
+            idx = order[i:i + batch_size].to(train.obs.device)
+            mean, var = model(train.obs[idx], train.mask[idx])
+            loss = gaussian_nll(mean, var, train.targets[idx])
+            opt.zero_grad()
+            loss.backward()
+            nn.utils.clip_grad_norm_(model.parameters(), clip)
+            opt.step()
+            total += float(loss.detach()) * len(idx)
+            count += len(idx)
+        scores = evaluate_filter(model, valid)
+        hist.train_nll.append(total / count)
+        hist.valid_nll.append(scores["nll"])
+        hist.valid_rmse.append(scores["rmse"])
+        if scores["nll"] < best:
+            best, hist.best_epoch = scores["nll"], epoch
+            best_state = copy.deepcopy(model.state_dict())
+        if progress:
+            print(f"epoch {epoch + 1}/{epochs}: train NLL {total / count:.3f}, "
+                  f"valid NLL {scores['nll']:.3f}, valid RMSE {scores['rmse']:.4f}")
+    if best_state is not None:
+        model.load_state_dict(best_state)
+    hist.seconds = time.perf_counter() - start
+    return hist

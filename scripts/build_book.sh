@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# Build the book: set up .venv, vendor MathJax + the widget manager, then execute every
+# notebook and render the HTML into _build/html/index.html. Works offline.
+# Exits non-zero if any notebook cell raises or Sphinx emits any warning.
+#
+# Usage: bash scripts/build_book.sh
+set -euo pipefail
+
+source "$(dirname "${BASH_SOURCE[0]}")/setup_env.sh"   # cd's to the repository root
+
+start=$(date +%s)
+python scripts/vendor_assets.py
+
+# --all: rebuild every page from scratch, so every notebook is executed on every build
+#        (execute_notebooks: force only executes the pages Sphinx re-reads).
+# -W --keep-going: any warning (including a notebook that fails to execute) makes the
+#        build fail, after reporting all of them.
+status=0
+jupyter-book build . --all -W --keep-going || status=$?
+
+elapsed=$(( $(date +%s) - start ))
+if [ "$status" -ne 0 ]; then
+    echo "[build_book] FAILED (exit $status) after ${elapsed}s; see the warnings/errors above" >&2
+    exit "$status"
+fi
+if [ ! -f _build/html/index.html ]; then
+    echo "[build_book] FAILED: _build/html/index.html was not produced" >&2
+    exit 1
+fi
+echo "[build_book] OK in ${elapsed}s: open _build/html/index.html"

@@ -1,0 +1,314 @@
+"""Tests for the action-conditional RKN (Chapter 4): control models, predict step, readout,
+inverse dynamics. Oracles: the dense Kalman filter with a control input (pgm_wm.kalman), the
+plain RKN, explicit recursions, and causality/perturbation properties."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from pgm_wm.acrkn import (
+    AcRKN,
+    DifferenceReadout,
+    InverseDynamicsHead,
+    LinearControl,
+    LocallyLinearControl,
+    MLPControl,
+    ZeroControl,
+    difference_scaling,
+    inverse_dynamics,
+    inverse_dynamics_loss,
+)
+from pgm_wm.gaussian import Gaussian
+from pgm_wm.kalman import kalman_filter
+from pgm_wm.rkn import BeliefDecoder, LocallyLinearTransition, ObservationEncoder
+
+DT = torch.float64
+
+
+class IdentityEncoder(nn.Module):
+    """w = obs, fixed observation variance: makes the ac-RKN a textbook linear Kalman filter."""
+
+    def __init__(self, var: torch.Tensor) -> None:
+        super().__init__()
+        self.var = var
+
+    def forward(self, obs):
+        return obs, self.var.expand_as(obs)
+
+
+def make_model(m=4, do=3, da=2, control="mlp", num_basis=5, bandwidth=1, predict_differences=True, seed=0, **kw):
+    torch.manual_seed(seed)
+    ctrl = {
+        "mlp": lambda: MLPControl(da, m, (16,)),
+        "linear": lambda: LinearControl(da, m),
+        "local": lambda: LocallyLinearControl(da, m, 3),
+        "zero": lambda: ZeroControl(da, m),
+    }[control]()
+    model = AcRKN(ObservationEncoder(do, m, (16,)), LocallyLinearTransition(m, num_basis, bandwidth), ctrl,
+                  BeliefDecoder(m, do, (16,), (16,)), predict_differences=predict_differences, **kw)
+    return model.to(DT)
+
+
+def data(B=3, T=12, do=3, da=2, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.randn(B, T, do, generator=g, dtype=DT), torch.randn(B, T, da, generator=g, dtype=DT),
+            torch.rand(B, T, generator=g) < 0.6)
+
+
+def beliefs_equal(a, b, **tol):
+    for f in ("mean", "var_upper", "var_lower", "cov_side"):
+        torch.testing.assert_close(getattr(a, f), getattr(b, f), **tol)
+
+
+# ----------------------------------------------------------------------------------- control models
+
+def test_linear_control_is_matrix_product():
+    c = LinearControl(2, 3).to(DT)
+    a = torch.randn(5, 2, dtype=DT)
+    torch.testing.assert_close(c(a, torch.zeros(5, 6, dtype=DT)), (c.B @ a.T).T)
+
+
+def test_locally_linear_control_matches_loop_and_reduces_to_linear():
+    c = LocallyLinearControl(2, 3, num_basis=4).to(DT)
+    a, z = torch.randn(7, 2, dtype=DT), torch.randn(7, 6, dtype=DT)
+    beta = c.coefficients(z)
+    torch.testing.assert_close(beta.sum(-1), torch.ones(7, dtype=DT))
+    assert bool((beta >= 0).all())
+    want = torch.stack([sum(beta[i, k] * c.basis[k] @ a[i] for k in range(4)) for i in range(7)])
+    torch.testing.assert_close(c(a, z), want)
+    c1 = LocallyLinearControl(2, 3, num_basis=1).to(DT)
+    torch.testing.assert_close(c1(a, z), a @ c1.basis[0].T)
+
+
+def test_mlp_control_ignores_state_and_zero_control_is_zero():
+    c = MLPControl(2, 3, (8,)).to(DT)
+    a = torch.randn(4, 2, dtype=DT)
+    torch.testing.assert_close(c(a, torch.randn(4, 6, dtype=DT)), c(a, torch.randn(4, 6, dtype=DT)))
+    assert torch.equal(ZeroControl(2, 3)(a, torch.ones(4, 6, dtype=DT)), torch.zeros(4, 6, dtype=DT))
+
+
+# ------------------------------------------------------------------------- reduction to the RKN
+
+def test_zero_control_equals_rkn():
+    model = make_model(control="zero")
+    obs, act, mask = data()
+    out = model.filter(obs, act, mask)
+    w, w_var = model.encoder(torch.where(mask[..., None], obs, 0.0))
+    ref = model.rkn.filter(w, w_var, mask)
+    for name in ("prior", "posterior", "predicted"):
+        beliefs_equal(getattr(out, name), getattr(ref, name), rtol=0, atol=0)
+    # and no actions at all is the same model
+    out_none = model.filter(obs, None, mask)
+    beliefs_equal(out_none.predicted, ref.predicted, rtol=0, atol=0)
+
+
+def test_control_term_enters_first_predict_mean_exactly():
+    model = make_model(control="local")
+    obs, act, mask = data()
+    out = model.filter(obs, act, mask)
+    ref = model.filter(obs, None, mask)
+    post0 = out.posterior.at(0)
+    b0 = model.control(act[:, 0], post0.mean)
+    torch.testing.assert_close(out.predicted.mean[:, 0], ref.predicted.mean[:, 0] + b0)
+
+
+def test_linear_acrkn_equals_dense_kalman_filter_with_control():
+    """Diagonal blocks (bandwidth 0), one basis matrix, identity encoder, linear control:
+    the ac-RKN must be the dense Kalman filter with F = A, B u = B a (Eq. acrkn-predict)."""
+    m, da, B, T = 3, 2, 2, 9
+    torch.manual_seed(3)
+    trans = LocallyLinearTransition(m, num_basis=1, bandwidth=0).to(DT)
+    with torch.no_grad():
+        for p in (trans.basis_11, trans.basis_12, trans.basis_21, trans.basis_22):
+            p.add_(0.1 * torch.randn_like(p))
+    r = torch.tensor([0.3, 0.5, 0.7], dtype=DT)
+    ctrl = LinearControl(da, m, init_std=0.5).to(DT)
+    model = AcRKN(IdentityEncoder(r), trans, ctrl, BeliefDecoder(m, m).to(DT), init_var=2.0)
+    g = torch.Generator().manual_seed(0)
+    y, u = torch.randn(B, T, m, generator=g, dtype=DT), torch.randn(B, T, da, generator=g, dtype=DT)
+    mask = torch.rand(B, T, generator=g) < 0.5
+    out = model.filter(y, u, mask)
+    F = trans.dense_matrix(torch.zeros(2 * m, dtype=DT))
+    H = torch.cat([torch.eye(m, dtype=DT), torch.zeros(m, m, dtype=DT)], 1)
+    init = Gaussian(torch.zeros(2 * m, dtype=DT), 2.0 * torch.eye(2 * m, dtype=DT))
+    kf = kalman_filter(y, init, F, H, torch.diag(trans.trans_var.detach()), torch.diag(r), mask,
+                       B=ctrl.B.detach(), u=u)
+    nxt = Gaussian(torch.cat([kf.predicted.mean[:, 1:], kf.next_prior.mean[:, None]], 1),
+                   torch.cat([kf.predicted.cov[:, 1:], kf.next_prior.cov[:, None]], 1))
+    dense = out.predicted.to_dense()
+    torch.testing.assert_close(dense.mean, nxt.mean, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(dense.cov, nxt.cov, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(out.posterior.to_dense().cov, kf.filtered.cov, rtol=1e-10, atol=1e-10)
+
+
+# --------------------------------------------------------------- action affects only the mean
+
+def test_action_changes_mean_not_covariance_constant_transition():
+    model = make_model(num_basis=1)
+    obs, act, mask = data()
+    out1 = model.filter(obs, act, mask)
+    out2 = model.filter(obs, act + 3.0 * torch.randn_like(act), mask)
+    for f in ("var_upper", "var_lower", "cov_side"):
+        assert torch.equal(getattr(out1.predicted, f), getattr(out2.predicted, f))
+    assert not torch.allclose(out1.predicted.mean, out2.predicted.mean)
+    _, v1 = model(obs, act, mask)
+    _, v2 = model(obs, act * -2.0, mask)
+    assert torch.equal(v1, v2)
+
+
+def test_action_leaves_one_predict_step_covariance_unchanged_locally_linear():
+    """With a state-dependent A the covariance of a *single* predict step from the same
+    posterior must not depend on the action (later steps may, through A(z))."""
+    model = make_model(num_basis=5, control="local")
+    obs, act, mask = data()
+    out1 = model.filter(obs, act, mask)
+    out2 = model.filter(obs, act.flip(-1) + 1.0, mask)
+    for f in ("var_upper", "var_lower", "cov_side"):
+        assert torch.equal(getattr(out1.predicted, f)[:, 0], getattr(out2.predicted, f)[:, 0])
+    assert not torch.allclose(out1.predicted.mean[:, 0], out2.predicted.mean[:, 0])
+
+
+# --------------------------------------------------------------------------- readout / memory
+
+def test_difference_readout_memory_rule_matches_recursion():
+    shift, scale = torch.tensor([0.1, -0.2, 0.0], dtype=DT), torch.tensor([0.5, 2.0, 1.0], dtype=DT)
+    model = make_model(diff_shift=shift, diff_scale=scale)
+    obs, act, mask = data()
+    mean, var = model(obs, act, mask)
+    d_mean, d_var = model.decoder(model.filter(obs, act, mask).predicted)
+    B, T, _ = obs.shape
+    for b in range(B):
+        last = torch.zeros(3, dtype=DT)
+        for t in range(T):
+            mem = obs[b, t] if mask[b, t] else last
+            want = mem + shift + scale * d_mean[b, t]
+            torch.testing.assert_close(mean[b, t], want)
+            torch.testing.assert_close(var[b, t], scale**2 * d_var[b, t])
+            last = want
+
+
+def test_absolute_prediction_mode_is_the_decoder_output():
+    model = make_model(predict_differences=False)
+    obs, act, mask = data()
+    mean, var = model(obs, act, mask)
+    d_mean, d_var = model.decoder(model.filter(obs, act, mask).predicted)
+    torch.testing.assert_close(mean, d_mean)
+    torch.testing.assert_close(var, d_var)
+
+
+def test_difference_scaling_from_stats():
+    stats = {"obs_mean": torch.tensor([1.0, 2.0]), "obs_std": torch.tensor([2.0, 4.0]),
+             "diff_mean": torch.tensor([0.2, -0.4]), "diff_std": torch.tensor([0.5, 1.0])}
+    shift, scale = difference_scaling(stats)
+    # a standardized difference d means o_{t+1} - o_t = diff_mean + diff_std d in original units
+    d = torch.tensor([0.7, -1.3])
+    o_t = torch.tensor([0.3, 5.0])
+    o_next = o_t + stats["diff_mean"] + stats["diff_std"] * d
+    norm = lambda x: (x - stats["obs_mean"]) / stats["obs_std"]  # noqa: E731
+    torch.testing.assert_close(norm(o_t) + shift + scale * d, norm(o_next))
+    with pytest.raises(ValueError, match="stats"):
+        difference_scaling({"obs_std": torch.ones(2)})
+
+
+# --------------------------------------------------------------------------- causality
+
+def test_prediction_uses_no_future_or_masked_observation():
+    model = make_model()
+    obs, act, mask = data(T=10)
+    mean, var = model(obs, act, mask)
+    t0 = 4
+    obs2 = obs.clone()
+    obs2[:, t0 + 1:] = torch.randn_like(obs2[:, t0 + 1:]) * 10
+    act2 = act.clone()
+    act2[:, t0 + 1:] = 5.0
+    obs2[~mask] = float("nan")  # masked values must be ignored, NaN included
+    mean2, var2 = model(obs2, act2, mask)
+    torch.testing.assert_close(mean2[:, : t0 + 1], mean[:, : t0 + 1])
+    torch.testing.assert_close(var2[:, : t0 + 1], var[:, : t0 + 1])
+    # the action a_t does influence the prediction of o_{t+1}
+    act3 = act.clone()
+    act3[:, t0] += 1.0
+    mean3, _ = model(obs, act3, mask)
+    torch.testing.assert_close(mean3[:, :t0], mean[:, :t0])
+    assert not torch.allclose(mean3[:, t0], mean[:, t0])
+
+
+def test_nan_at_masked_steps_gives_finite_gradients():
+    model = make_model()
+    obs, act, mask = data()
+    obs = obs.clone()
+    obs[~mask] = float("nan")
+    mean, var = model(obs, act, mask)
+    loss = (mean[:, :-1] - torch.nan_to_num(obs[:, 1:])).pow(2).mean() + var.mean()
+    loss.backward()
+    for p in model.parameters():
+        if p.grad is not None:
+            assert bool(torch.isfinite(p.grad).all())
+
+
+def test_batch_equals_sequential():
+    model = make_model()
+    obs, act, mask = data(B=4)
+    mean, var = model(obs, act, mask)
+    for b in range(4):
+        mb, vb = model(obs[b:b + 1], act[b:b + 1], mask[b:b + 1])
+        torch.testing.assert_close(mb[0], mean[b])
+        torch.testing.assert_close(vb[0], var[b])
+
+
+# --------------------------------------------------------------------------- inverse dynamics
+
+def test_inverse_dynamics_does_not_see_the_action_it_predicts():
+    model = make_model()
+    head = InverseDynamicsHead(4, 2, (8,)).to(DT)
+    obs, act, _ = data(T=8)
+    a_hat, _, _ = inverse_dynamics(model, head, obs, act, action_feedback=True)
+    t0 = 3
+    act2 = act.clone()
+    act2[:, t0] += 2.0
+    a_hat2, _, _ = inverse_dynamics(model, head, obs, act2, action_feedback=True)
+    torch.testing.assert_close(a_hat2[:, : t0 + 1], a_hat[:, : t0 + 1])
+    assert not torch.allclose(a_hat2[:, t0 + 1], a_hat[:, t0 + 1])  # fed back afterwards
+    a_nf, _, _ = inverse_dynamics(model, head, obs, act, action_feedback=False)
+    a_nf2, _, _ = inverse_dynamics(model, head, obs, act2, action_feedback=False)
+    torch.testing.assert_close(a_nf, a_nf2)  # no feedback: actions never used
+
+
+def test_inverse_dynamics_loss_value():
+    model = make_model()
+    head = InverseDynamicsHead(4, 2, (8,)).to(DT)
+    obs, act, _ = data(T=8)
+    a_hat, f_mean, _ = inverse_dynamics(model, head, obs, act)
+    want = ((a_hat - act[:, :-1]) ** 2).mean() + 0.3 * ((f_mean[:, :-1] - obs[:, 1:]) ** 2).mean()
+    torch.testing.assert_close(inverse_dynamics_loss(model, head, obs, act, lam=0.3), want)
+    with pytest.raises(ValueError, match="lam"):
+        inverse_dynamics_loss(model, head, obs, act, lam=-1.0)
+
+
+# --------------------------------------------------------------------------- bad inputs
+
+def test_bad_inputs_raise_value_error():
+    model = make_model()
+    obs, act, mask = data()
+    with pytest.raises(ValueError, match="actions"):
+        model(obs, act[:, :-1], mask)
+    with pytest.raises(ValueError, match="mask"):
+        model(obs, act, mask[:, :-1])
+    with pytest.raises(ValueError, match="obs"):
+        model(obs[..., :2], act, mask)
+    with pytest.raises(ValueError, match="obs"):
+        model(obs[0], act, mask)
+    with pytest.raises(ValueError, match="action"):
+        MLPControl(2, 4)(torch.zeros(3, 5), torch.zeros(3, 8))
+    with pytest.raises(ValueError, match="mean"):
+        LinearControl(2, 4)(torch.zeros(3, 2), torch.zeros(3, 7))
+    with pytest.raises(ValueError, match="num_basis"):
+        LocallyLinearControl(2, 4, num_basis=0)
+    with pytest.raises(ValueError, match="scale"):
+        DifferenceReadout(2, True, None, torch.tensor([1.0, -1.0]))
+    with pytest.raises(ValueError, match="control"):
+        AcRKN(ObservationEncoder(3, 4), LocallyLinearTransition(4), MLPControl(2, 5), BeliefDecoder(4, 3))
+    with pytest.raises(ValueError, match="next_w"):
+        InverseDynamicsHead(4, 2)(torch.zeros(3, 8), torch.zeros(3, 5))

@@ -1,0 +1,511 @@
+"""Tests for the hidden-parameter RSSM (Chapter 5).
+
+Oracles: dense Gaussian algebra (pgm_wm.gaussian.marginalize_linear), the dense Kalman filter
+with the task as an extra Gaussian cause (pgm_wm.kalman), the ac-RKN itself (reduction when the
+task term vanishes), explicit per-window loops, numpy SVD, and properties (context permutation
+and padding invariance, no future in any context, causality of the window-by-window inference).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from torch import nn
+
+from pgm_wm.acrkn import AcRKN, LinearControl, MLPControl
+from pgm_wm.aggregation import BayesianContextEncoder
+from pgm_wm.factorized import FactorizedBelief, known_input
+from pgm_wm.gaussian import Gaussian, marginalize_linear
+from pgm_wm.hiprssm import (
+    HiPRSSM,
+    HiPWindows,
+    LinearTaskTransform,
+    NonlinearTaskTransform,
+    RecurrentContextEncoder,
+    context_features,
+    eval_masks,
+    evaluate_windows,
+    hip_loss_fn,
+    infer_trajectory,
+    latent_pca,
+    make_windows,
+    predict_windows,
+    window_rmse,
+)
+from pgm_wm.kalman import kalman_filter
+from pgm_wm.rkn import BeliefDecoder, LocallyLinearTransition, ObservationEncoder
+
+torch.set_num_threads(1)
+DT = torch.float64
+SETTINGS = settings(max_examples=15, deadline=None)
+
+
+class IdentityEncoder(nn.Module):
+    """w = obs with a fixed variance: turns the (ac-)RKN into a textbook Kalman filter."""
+
+    def __init__(self, var: torch.Tensor) -> None:
+        super().__init__()
+        self.var = var
+
+    def forward(self, obs):
+        return obs, self.var.expand_as(obs)
+
+
+class FixedTask(nn.Module):
+    """A 'context encoder' returning a given task belief for every row (for reductions)."""
+
+    def __init__(self, mean: torch.Tensor, var: torch.Tensor, in_dim: int = 3) -> None:
+        super().__init__()
+        self.mean, self.var, self.in_dim, self.latent_dim = mean, var, in_dim, mean.shape[-1]
+
+    def forward(self, x, mask=None):
+        B = x.shape[0]
+        return self.mean.expand(B, -1), self.var.expand(B, -1)
+
+
+def make_acrkn(m=3, do=3, da=2, seed=0, num_basis=3, bandwidth=1):
+    torch.manual_seed(seed)
+    return AcRKN(ObservationEncoder(do, m, (16,)), LocallyLinearTransition(m, num_basis, bandwidth),
+                 MLPControl(da, m, (16,)), BeliefDecoder(m, do, (16,), (16,)),
+                 diff_shift=torch.full((do,), 0.1), diff_scale=torch.full((do,), 0.5)).to(DT)
+
+
+def make_hip(m=3, do=3, da=2, task_dim=4, transform="nonlinear", encoder="ba", seed=0):
+    acrkn = make_acrkn(m, do, da, seed)
+    F = 2 * do + da
+    enc = (BayesianContextEncoder(F, task_dim, (16,)) if encoder == "ba"
+           else RecurrentContextEncoder(F, task_dim, (16,)))
+    tr = (NonlinearTaskTransform(task_dim, m, (16,)) if transform == "nonlinear"
+          else LinearTaskTransform(task_dim, m, init_std=0.5))
+    return HiPRSSM(acrkn, enc, tr).to(DT)
+
+
+def seq_data(n=3, T=24, do=3, da=2, seed=1, p_valid=1.0):
+    g = torch.Generator().manual_seed(seed)
+    obs = torch.randn(n, T, do, generator=g, dtype=DT).cumsum(1) * 0.3
+    act = torch.randn(n, T, da, generator=g, dtype=DT)
+    valid = torch.rand(n, T, generator=g) < p_valid
+    return obs, act, valid
+
+
+def window_batch(B=4, k=6, do=3, da=2, seed=2, p_mask=0.7):
+    g = torch.Generator().manual_seed(seed)
+    obs = torch.randn(B, k, do, generator=g, dtype=DT)
+    act = torch.randn(B, k, da, generator=g, dtype=DT)
+    mask = torch.rand(B, k, generator=g) < p_mask
+    ctx = torch.randn(B, 5, 2 * do + da, generator=g, dtype=DT)
+    cmask = torch.rand(B, 5, generator=g) < 0.8
+    return obs, act, mask, ctx, cmask
+
+
+# ================================================================ reduction to the ac-RKN
+
+def test_linear_task_with_zero_mean_and_vanishing_variance_is_the_acrkn():
+    obs, act, mask, ctx, cmask = window_batch()
+    hip = make_hip(transform="linear")
+    ref_mean, ref_var = hip.acrkn(obs, act, mask)
+    zeros = torch.zeros(obs.shape[0], 4, dtype=DT)
+    # exactly zero task term: identical to the ac-RKN
+    mean, var = hip(obs, act, mask, task=(zeros, zeros))
+    torch.testing.assert_close(mean, ref_mean, rtol=0, atol=1e-13)
+    torch.testing.assert_close(var, ref_var, rtol=0, atol=1e-13)
+    # sigma_l -> 0 with C mu_l = 0: the difference vanishes (linearly in sigma_l)
+    errs = []
+    for s in (1e-1, 1e-3, 1e-5):
+        m, v = hip(obs, act, mask, task=(zeros, torch.full_like(zeros, s)))
+        errs.append(max(float((v - ref_var).abs().max()), float((m - ref_mean).abs().max())))
+    assert errs[0] > errs[1] > errs[2] > 0
+    assert errs[2] < 1e-3 * errs[0]
+
+
+def test_zero_C_gives_the_acrkn_whatever_the_context():
+    obs, act, mask, ctx, cmask = window_batch()
+    hip = make_hip(transform="linear")
+    with torch.no_grad():
+        hip.task_transform.C.zero_()
+    out, _, _ = hip.filter(obs, act, mask, ctx, cmask)
+    ref = hip.acrkn.filter(obs, act, mask)
+    for f in ("mean", "var_upper", "var_lower", "cov_side"):
+        torch.testing.assert_close(getattr(out.predicted, f), getattr(ref.predicted, f), rtol=0, atol=0)
+
+
+def test_nonlinear_task_with_zero_mean_net_and_zero_variance_is_the_acrkn():
+    obs, act, mask, ctx, cmask = window_batch()
+    hip = make_hip(transform="nonlinear")
+    with torch.no_grad():
+        last = hip.task_transform.mean_net[-1]
+        last.weight.zero_()
+        last.bias.zero_()
+    zeros = torch.zeros(obs.shape[0], 4, dtype=DT)
+    mean, var = hip(obs, act, mask, task=(torch.randn_like(zeros), zeros))
+    ref_mean, ref_var = hip.acrkn(obs, act, mask)
+    torch.testing.assert_close(mean, ref_mean, rtol=0, atol=1e-13)
+    torch.testing.assert_close(var, ref_var, rtol=0, atol=1e-13)
+
+
+# ================================================================ the task-conditional predict
+
+@SETTINGS
+@given(m=st.integers(1, 4), k=st.integers(1, 5), seed=st.integers(0, 10_000))
+def test_linear_task_cause_is_the_block_diagonal_of_dense_C_Sigma_Ct(m, k, seed):
+    g = torch.Generator().manual_seed(seed)
+    tr = LinearTaskTransform(k, m).to(DT)
+    with torch.no_grad():
+        tr.C.copy_(torch.randn(2 * m, k, generator=g, dtype=DT))
+    mu = torch.randn(3, k, generator=g, dtype=DT)
+    var = torch.rand(3, k, generator=g, dtype=DT) + 0.01
+    cause = tr(mu, var)
+    dense = marginalize_linear([(tr.C.detach(), Gaussian(mu, torch.diag_embed(var)))])
+    proj = FactorizedBelief.from_dense(dense)
+    for f in ("mean", "var_upper", "var_lower", "cov_side"):
+        torch.testing.assert_close(getattr(cause, f), getattr(proj, f), rtol=1e-12, atol=1e-12)
+
+
+@SETTINGS
+@given(m=st.integers(1, 4), k=st.integers(1, 5), seed=st.integers(0, 10_000))
+def test_task_conditional_predict_equals_dense_marginalization_of_three_causes(m, k, seed):
+    """Eq. (hip-predict): A z + b(a) + C mu_l and A Sigma A^T + C Sigma_l C^T + Q, block diagonals,
+    for a diagonal-block transition (where the state part is exact) and a full C."""
+    g = torch.Generator().manual_seed(seed)
+    trans = LocallyLinearTransition(m, num_basis=1, bandwidth=0).to(DT)
+    with torch.no_grad():
+        for p in (trans.basis_11, trans.basis_12, trans.basis_21, trans.basis_22):
+            p.add_(0.3 * torch.randn(p.shape, generator=g, dtype=DT))
+    tr = LinearTaskTransform(k, m).to(DT)
+    with torch.no_grad():
+        tr.C.copy_(torch.randn(2 * m, k, generator=g, dtype=DT))
+    B = 2
+    su = torch.rand(B, m, generator=g, dtype=DT) + 0.5
+    sl = torch.rand(B, m, generator=g, dtype=DT) + 0.5
+    ss = (torch.rand(B, m, generator=g, dtype=DT) - 0.5) * (su * sl).sqrt()
+    post = FactorizedBelief(torch.randn(B, 2 * m, generator=g, dtype=DT), su, sl, ss)
+    b = torch.randn(B, 2 * m, generator=g, dtype=DT)
+    mu_l = torch.randn(B, k, generator=g, dtype=DT)
+    var_l = torch.rand(B, k, generator=g, dtype=DT) + 0.1
+    prior = trans(post, [known_input(b), tr(mu_l, var_l)])
+    A = trans.dense_matrix(post.mean).detach()
+    dense = marginalize_linear(
+        [(A, post.to_dense()), (tr.C.detach(), Gaussian(mu_l, torch.diag_embed(var_l)))],
+        noise_cov=torch.diag(trans.trans_var.detach()), offset=b)
+    proj = FactorizedBelief.from_dense(dense)
+    for f in ("mean", "var_upper", "var_lower", "cov_side"):
+        torch.testing.assert_close(getattr(prior, f), getattr(proj, f), rtol=1e-10, atol=1e-10)
+
+
+def test_linear_hiprssm_equals_dense_kalman_filter_with_task_cause():
+    """Diagonal transition blocks, identity encoder, linear control and a task matrix C whose
+    blocks are diagonal (so C Sigma_l C^T has the factorized structure): the HiP-RSSM filter must be
+    the dense Kalman filter with F = A, input [B, C] [a_t; mu_l] and noise Q + C Sigma_l C^T."""
+    m, da, B, T = 3, 2, 2, 8
+    torch.manual_seed(5)
+    trans = LocallyLinearTransition(m, num_basis=1, bandwidth=0).to(DT)
+    with torch.no_grad():
+        for p in (trans.basis_11, trans.basis_12, trans.basis_21, trans.basis_22):
+            p.add_(0.1 * torch.randn_like(p))
+    r = torch.tensor([0.3, 0.5, 0.7], dtype=DT)
+    ctrl = LinearControl(da, m, init_std=0.5).to(DT)
+    acrkn = AcRKN(IdentityEncoder(r), trans, ctrl, BeliefDecoder(m, m).to(DT), init_var=2.0)
+    tr = LinearTaskTransform(m, m).to(DT)
+    with torch.no_grad():
+        tr.C.copy_(torch.cat([torch.diag(torch.randn(m, dtype=DT)), torch.diag(torch.randn(m, dtype=DT))]))
+    g = torch.Generator().manual_seed(0)
+    mu_l = torch.randn(B, m, generator=g, dtype=DT)
+    var_l = torch.rand(B, m, generator=g, dtype=DT) + 0.2
+    hip = HiPRSSM(acrkn, FixedTask(mu_l[0], var_l[0]), tr)
+    y = torch.randn(B, T, m, generator=g, dtype=DT)
+    u = torch.randn(B, T, da, generator=g, dtype=DT)
+    mask = torch.rand(B, T, generator=g) < 0.6
+    out, _, _ = hip.filter(y, u, mask, task=(mu_l, var_l))
+    F = trans.dense_matrix(torch.zeros(2 * m, dtype=DT)).detach()
+    H = torch.cat([torch.eye(m, dtype=DT), torch.zeros(m, m, dtype=DT)], 1)
+    init = Gaussian(torch.zeros(2 * m, dtype=DT), 2.0 * torch.eye(2 * m, dtype=DT))
+    C = tr.C.detach()
+    for i in range(B):
+        Q = torch.diag(trans.trans_var.detach()) + C @ torch.diag(var_l[i]) @ C.T
+        u_aug = torch.cat([u[i], mu_l[i].expand(T, m)], -1)
+        kf = kalman_filter(y[i], init, F, H, Q, torch.diag(r), mask[i],
+                           B=torch.cat([ctrl.B.detach(), C], 1), u=u_aug)
+        want_mean = torch.cat([kf.predicted.mean[1:], kf.next_prior.mean[None]])
+        want_cov = torch.cat([kf.predicted.cov[1:], kf.next_prior.cov[None]])
+        dense = out.predicted.to_dense()
+        torch.testing.assert_close(dense.mean[i], want_mean, rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(dense.cov[i], want_cov, rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(out.posterior.to_dense().cov[i], kf.filtered.cov, rtol=1e-10, atol=1e-10)
+
+
+@SETTINGS
+@given(k=st.integers(1, 6), seed=st.integers(0, 10_000))
+def test_nonlinear_variance_term_is_nonnegative_zero_at_zero_and_monotone(k, seed):
+    torch.manual_seed(seed)
+    tr = NonlinearTaskTransform(k, 3, (8,), var_hidden=5).to(DT)
+    g = torch.Generator().manual_seed(seed)
+    v = torch.rand(10, k, generator=g, dtype=DT) * 5
+    dv = torch.rand(10, k, generator=g, dtype=DT)
+    gv, gv2 = tr.var_term(v), tr.var_term(v + dv)
+    assert bool((gv >= 0).all())
+    assert bool((gv2 >= gv - 1e-12).all())
+    torch.testing.assert_close(tr.var_term(torch.zeros(1, k, dtype=DT)), torch.zeros(1, 6, dtype=DT),
+                               rtol=0, atol=1e-15)
+    cause = tr(torch.randn(10, k, dtype=DT), v)
+    assert torch.equal(cause.cov_side, torch.zeros_like(cause.cov_side))
+    torch.testing.assert_close(cause.var, gv)
+
+
+def test_task_mean_moves_prior_mean_and_task_variance_widens_prior():
+    obs, act, mask, ctx, cmask = window_batch()
+    hip = make_hip(transform="linear")
+    B = obs.shape[0]
+    z = torch.zeros(B, 4, dtype=DT)
+    out0, _, _ = hip.filter(obs, act, mask, task=(z, z))
+    out1, _, _ = hip.filter(obs, act, mask, task=(z, torch.ones_like(z)))
+    # step 0: same posterior, prior variance grows by exactly diag(C diag(1) C^T) blocks
+    cause = hip.task_cause(z, torch.ones_like(z))
+    torch.testing.assert_close(out1.predicted.at(0).var - out0.predicted.at(0).var, cause.var)
+    mu = torch.randn(B, 4, dtype=DT)
+    out2, _, _ = hip.filter(obs, act, mask, task=(mu, z))
+    torch.testing.assert_close(out2.predicted.at(0).mean - out0.predicted.at(0).mean,
+                               mu @ hip.task_transform.C.detach().T)
+
+
+# ================================================================ context encoders
+
+def test_context_permutation_and_padding_do_not_change_predictions():
+    obs, act, mask, ctx, cmask = window_batch()
+    hip = make_hip()
+    mean, var = hip(obs, act, mask, ctx, cmask)
+    g = torch.Generator().manual_seed(7)
+    for _ in range(3):
+        perm = torch.randperm(ctx.shape[1], generator=g)
+        m2, v2 = hip(obs, act, mask, ctx[:, perm], cmask[:, perm])
+        torch.testing.assert_close(m2, mean, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(v2, var, rtol=1e-12, atol=1e-12)
+    # padded junk (even NaN) changes nothing
+    junk = torch.full((ctx.shape[0], 3, ctx.shape[2]), float("nan"), dtype=DT)
+    m3, v3 = hip(obs, act, mask, torch.cat([ctx, junk], 1),
+                 torch.cat([cmask, torch.zeros(ctx.shape[0], 3, dtype=torch.bool)], 1))
+    torch.testing.assert_close(m3, mean, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(v3, var, rtol=1e-12, atol=1e-12)
+
+
+def test_recurrent_context_encoder_is_order_dependent_and_skips_masked_elements():
+    obs, act, mask, ctx, cmask = window_batch()
+    enc = RecurrentContextEncoder(ctx.shape[-1], 4, (16,)).to(DT)
+    mean, var = enc(ctx, cmask)
+    assert mean.shape == (ctx.shape[0], 4) and bool((var > 0).all())
+    perm = torch.arange(ctx.shape[1]).flip(0)
+    full = torch.ones_like(cmask)
+    m1, _ = enc(ctx, full)
+    m2, _ = enc(ctx[:, perm], full)
+    assert not torch.allclose(m1, m2)  # time order matters for a recurrent encoder
+    # a masked element's value is never used
+    ctx2 = ctx.clone()
+    ctx2[~cmask] = 1e6
+    torch.testing.assert_close(enc(ctx2, cmask)[0], mean)
+    # an empty set: the initial belief N(0, init_var I) only propagated through the transition
+    pm, pv = enc(ctx, torch.zeros_like(cmask))
+    torch.testing.assert_close(pm, torch.zeros_like(pm))
+    belief = enc.rkn.initial_belief((ctx.shape[0],), ctx)
+    for _ in range(ctx.shape[1] - 1):
+        belief = enc.rkn.transition(belief)
+    torch.testing.assert_close(pv, belief.var)
+
+
+def test_empty_context_gives_the_task_prior():
+    obs, act, mask, ctx, cmask = window_batch()
+    hip = make_hip()
+    mean, var, t_mean, t_var = hip.predict(obs, act, mask, None)
+    torch.testing.assert_close(t_mean, torch.zeros_like(t_mean))
+    torch.testing.assert_close(t_var, torch.ones_like(t_var))
+    m2, v2, _, _ = hip.predict(obs, act, mask, ctx, torch.zeros_like(cmask))
+    torch.testing.assert_close(m2, mean)
+
+
+def test_more_context_shrinks_the_task_variance():
+    obs, act, mask, ctx, cmask = window_batch()
+    hip = make_hip()
+    few = torch.zeros_like(cmask)
+    few[:, :2] = True
+    _, v_few = hip.infer_task(ctx, few)
+    _, v_all = hip.infer_task(ctx, torch.ones_like(cmask))
+    assert bool((v_all < v_few).all())
+
+
+# ================================================================ windows and inference
+
+@SETTINGS
+@given(n=st.integers(1, 3), k=st.integers(2, 7), extra=st.integers(0, 6), include_first=st.booleans())
+def test_windows_never_put_the_window_or_its_future_into_the_context(n, k, extra, include_first):
+    T = 3 * k + extra
+    obs, act, valid = seq_data(n, T, p_valid=0.9)
+    w = make_windows(obs, act, k, valid, include_first=include_first)
+    n_win = T // k
+    assert w.n_windows == n * (n_win - (0 if include_first else 1))
+    present = w.context_mask
+    assert bool((w.context_time[present] < w.start[:, None].expand_as(present)[present]).all())
+    assert bool((w.context_time[present] >= (w.start[:, None] - k).expand_as(present)[present]).all())
+    # reference: the context of window (s, j) is built from raw steps (j-1)k .. jk-1 only
+    for i in range(w.n_windows):
+        s, t0 = int(w.seq[i]), int(w.start[i])
+        torch.testing.assert_close(w.obs[i], obs[s, t0:t0 + k])
+        if t0 == 0:
+            assert not bool(w.context_mask[i].any())
+            continue
+        x, cm = context_features(obs[s, t0 - k:t0], act[s, t0 - k:t0], valid[s, t0 - k:t0])
+        assert torch.equal(w.context_mask[i], cm)
+        torch.testing.assert_close(w.context[i][cm], x[cm])
+    # perturbing everything at or after a window's start leaves its context unchanged
+    j = 1 if include_first else 0
+    t0 = int(w.start[j])
+    obs2, act2 = obs.clone(), act.clone()
+    obs2[:, t0:] += 100.0
+    act2[:, t0:] -= 100.0
+    w2 = make_windows(obs2, act2, k, valid, include_first=include_first)
+    torch.testing.assert_close(w2.context[j], w.context[j])
+
+
+def test_context_features_standardize_the_difference_and_mask_pairs():
+    obs, act, valid = seq_data(2, 6, p_valid=0.7)
+    shift, scale = torch.tensor([0.1, -0.2, 0.3], dtype=DT), torch.tensor([0.5, 2.0, 1.5], dtype=DT)
+    x, m = context_features(obs, act, valid, shift, scale)
+    o = torch.where(valid[..., None], obs, 0.0)
+    torch.testing.assert_close(x[..., -3:], (o[:, 1:] - o[:, :-1] - shift) / scale)
+    torch.testing.assert_close(x[..., :3], o[:, :-1])
+    torch.testing.assert_close(x[..., 3:5], act[:, :-1])
+    assert torch.equal(m, valid[:, 1:] & valid[:, :-1])
+
+
+def test_window_history_is_the_previous_window():
+    obs, act, valid = seq_data(2, 20)
+    w = make_windows(obs, act, 5, valid, hidden={"p": obs[..., 0]})
+    ho, ha, hv = w.with_history()
+    for i in range(w.n_windows):
+        s, t0 = int(w.seq[i]), int(w.start[i])
+        torch.testing.assert_close(ho[i], obs[s, t0 - 5:t0 + 5])
+        torch.testing.assert_close(ha[i], act[s, t0 - 5:t0 + 5])
+        torch.testing.assert_close(w.hidden["p"][i], obs[s, t0:t0 + 5, 0])
+    sub = w.select(torch.tensor([2, 0]))
+    assert isinstance(sub, HiPWindows) and sub.n_windows == 2
+    torch.testing.assert_close(sub.obs[1], w.obs[0])
+
+
+def test_infer_trajectory_equals_explicit_window_loop_and_is_causal():
+    n, T, k = 2, 23, 5
+    obs, act, valid = seq_data(n, T, p_valid=0.85)
+    hip = make_hip()
+    shift, scale = torch.full((3,), 0.1, dtype=DT), torch.full((3,), 0.5, dtype=DT)
+    mean, var, t_mean, t_var = infer_trajectory(hip, obs, act, k, valid, shift, scale)
+    assert mean.shape == (n, 20, 3) and t_mean.shape == (n, 4, 4)
+    with torch.no_grad():
+        for j in range(4):
+            sl = slice(j * k, (j + 1) * k)
+            if j == 0:
+                ctx, cm = None, None
+            else:
+                ctx, cm = context_features(obs[:, sl.start - k:sl.start], act[:, sl.start - k:sl.start],
+                                           valid[:, sl.start - k:sl.start], shift, scale)
+            mu, v, tm, tv = hip.predict(obs[:, sl], act[:, sl], valid[:, sl], ctx, cm)
+            torch.testing.assert_close(mean[:, sl], mu)
+            torch.testing.assert_close(var[:, sl], v)
+            torch.testing.assert_close(t_mean[:, j], tm)
+    # causality: changing o_s (and a_s) never changes a prediction made at an index < s
+    for s in (3, 5, 11, 15):
+        obs2, act2 = obs.clone(), act.clone()
+        obs2[:, s:] += 5.0
+        act2[:, s:] -= 5.0
+        m2, _, _, _ = infer_trajectory(hip, obs2, act2, k, valid, shift, scale)
+        torch.testing.assert_close(m2[:, :s], mean[:, :s], rtol=0, atol=0)
+        assert not torch.allclose(m2[:, s:], mean[:, s:])
+
+
+# ================================================================ evaluation helpers
+
+def test_eval_masks_are_seeded_and_hide_the_open_loop_part():
+    a = eval_masks(50, 10, 0.5, None, 1, seed=3)
+    assert torch.equal(a, eval_masks(50, 10, 0.5, None, 1, seed=3))
+    assert bool(a[:, 0].all()) and 0.35 < float(a[:, 1:].float().mean()) < 0.65
+    b = eval_masks(50, 10, 1.0, 4, 1, seed=0)
+    assert bool(b[:, :4].all()) and not bool(b[:, 4:].any())
+
+
+def test_predict_windows_hides_masked_observations_and_window_rmse_units():
+    obs, act, valid = seq_data(3, 24)
+    w = make_windows(obs, act, 6, valid)
+    hip = make_hip()
+    mask = eval_masks(w.n_windows, 6, 1.0, 3, 1, seed=0)
+    mu, _ = predict_windows(hip, w, mask)
+    w_bad = HiPWindows(**{**w.__dict__, "obs": torch.where(mask[..., None], w.obs, torch.nan)})
+    mu_bad, _ = predict_windows(hip, w_bad, mask)
+    torch.testing.assert_close(mu_bad, mu)
+    std = torch.tensor([2.0, 0.5, 3.0], dtype=DT)
+    got = window_rmse(mu, w, std, from_step=2)
+    err = ((mu[:, 2:5] - w.obs[:, 3:]) * std).numpy()
+    assert abs(float(got) - float(np.sqrt((err**2).mean()))) < 1e-12
+    # a plain world model with the previous window as history
+    mu_h, _ = predict_windows(hip.acrkn, w, mask, use_context=False, use_history=True)
+    ho, ha, hv = w.with_history()
+    full_mask = torch.cat([hv[:, :6], mask & w.valid], 1)
+    ref, _ = hip.acrkn(torch.where(full_mask[..., None], ho, 0.0), ha, full_mask)
+    torch.testing.assert_close(mu_h, ref[:, 6:])
+    res = evaluate_windows(hip, w, std)
+    assert set(res) == {"one_step", "one_step_imp", "multi_step", "multi_step_imp"}
+    assert all(np.isfinite(v) and v > 0 for v in res.values())
+
+
+def test_hip_loss_reaches_every_part_of_the_model():
+    obs, act, valid = seq_data(4, 24)
+    w = make_windows(obs, act, 6, valid)
+    for encoder in ("ba", "recurrent"):
+        hip = make_hip(encoder=encoder)
+        loss = hip_loss_fn(hip, keep_prob=0.5)(w.tensors(), torch.Generator().manual_seed(0))
+        assert loss.ndim == 0 and torch.isfinite(loss)
+        loss.backward()
+        for part in (hip.context_encoder, hip.task_transform, hip.acrkn.control, hip.acrkn.transition):
+            grads = [p.grad for p in part.parameters() if p.requires_grad]
+            assert any(gr is not None and float(gr.abs().sum()) > 0 for gr in grads), type(part).__name__
+
+
+def test_latent_pca_matches_numpy_svd():
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(40, 5, generator=g, dtype=DT) @ torch.randn(5, 5, generator=g, dtype=DT)
+    scores, ratio = latent_pca(x, 2)
+    xc = x.numpy() - x.numpy().mean(0)
+    u, s, vt = np.linalg.svd(xc, full_matrices=False)
+    np.testing.assert_allclose(ratio.numpy(), (s**2 / (s**2).sum())[:2], rtol=1e-10)
+    np.testing.assert_allclose(np.abs(scores.numpy()), np.abs(xc @ vt[:2].T), rtol=1e-8, atol=1e-10)
+
+
+# ================================================================ bad inputs
+
+def test_bad_inputs_raise_value_error():
+    obs, act, valid = seq_data(2, 12)
+    with pytest.raises(ValueError, match="window_len"):
+        make_windows(obs, act, 1)
+    with pytest.raises(ValueError, match="window_len"):
+        make_windows(obs, act, 7)  # only one window and no first window allowed
+    with pytest.raises(ValueError, match="actions"):
+        make_windows(obs, act[:, :5], 3)
+    with pytest.raises(ValueError, match="valid"):
+        make_windows(obs, act, 3, valid[:, :5])
+    with pytest.raises(ValueError, match="diff_scale"):
+        context_features(obs, act, None, None, torch.tensor([1.0, 0.0, 1.0], dtype=DT))
+    with pytest.raises(ValueError, match="var"):
+        LinearTaskTransform(3, 2)(torch.zeros(1, 3), torch.zeros(1, 4))
+    with pytest.raises(ValueError, match="latent_dim"):
+        RecurrentContextEncoder(5, 3)
+    with pytest.raises(ValueError, match="task_transform"):
+        HiPRSSM(make_acrkn(m=3), BayesianContextEncoder(8, 4), LinearTaskTransform(4, 2))
+    with pytest.raises(ValueError, match="context_encoder"):
+        HiPRSSM(make_acrkn(m=3), BayesianContextEncoder(8, 5), LinearTaskTransform(4, 3))
+    hip = make_hip()
+    o, a, m, ctx, cm = window_batch()
+    with pytest.raises(ValueError, match="context_mask"):
+        hip(o, a, m, ctx, cm[:, :2])
+    with pytest.raises(ValueError, match="task"):
+        hip(o, a, m, task=(torch.zeros(4, 4, dtype=DT), -torch.ones(4, 4, dtype=DT)))
+    with pytest.raises(ValueError, match="keep_prob"):
+        eval_masks(3, 5, 1.5)
+    with pytest.raises(ValueError, match="n_components"):
+        latent_pca(torch.randn(4, 3), 5)
