@@ -203,3 +203,64 @@ class FFNNBaseline(FeedbackModel):
             state = torch.cat([state[:, 1:], x.unsqueeze(1)], dim=1)
         mean, var = self.head(self.trunk(state.reshape(state.shape[0], -1)))
         return state, mean, var
+
+
+# ----------------------------------------------------------------------------- Chapter 6: Transformer
+__all__ += ["alibi_causal_bias", "TransformerBaseline"]
+
+
+def alibi_causal_bias(T: int, n_heads: int, like: Tensor) -> Tensor:
+    r"""Additive attention bias ``(n_heads, T, T)``: causal (``-inf`` above the diagonal) with a
+    linear recency penalty :math:`-s_h\,(i - j)` for query ``i`` and key ``j <= i``, slopes
+    :math:`s_h = 2^{-8(h+1)/n_\text{heads}}` (ALiBi, Press et al. 2022). Relative positions only, so a
+    model trained on short crops can be run on longer sequences."""
+    if T <= 0 or n_heads <= 0:
+        raise ValueError(f"T: need T > 0 and n_heads > 0, got {T}, {n_heads}")
+    idx = torch.arange(T, device=like.device)
+    dist = (idx[:, None] - idx[None, :]).to(like.dtype)  # i - j
+    slopes = torch.tensor([2.0 ** (-8.0 * (h + 1) / n_heads) for h in range(n_heads)], dtype=like.dtype,
+                          device=like.device)
+    bias = -slopes[:, None, None] * dist
+    return bias.masked_fill(dist < 0, float("-inf"))
+
+
+class TransformerBaseline(nn.Module):
+    r"""A small *direct multi-step* Transformer world model (the "Multi-Transformer" competitor of
+    the MTS3 chapter), with the world-model interface ``forward(obs, actions, mask) -> (mean, var)``.
+
+    Token :math:`x_t = [m_t o_t,\ m_t,\ a_t]` (:math:`m_t` the 0/1 mask) -> linear embedding ->
+    ``n_layers`` pre-norm self-attention blocks with a causal ALiBi bias (:func:`alibi_causal_bias`)
+    -> Gaussian head (variance ``elu + 1``). Index ``t`` sees observed :math:`o_{\le t}` and
+    :math:`a_{\le t}` and predicts :math:`o_{t+1}`. All predictions of a horizon come out of **one**
+    pass: a missing observation is simply absent (its token carries only the action), the model's
+    own predictions are never fed back, so errors cannot accumulate through feedback.
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int, d_model: int = 32, n_heads: int = 2, n_layers: int = 2,
+                 dim_feedforward: int = 64, head_hidden: Sequence[int] = (32,), dropout: float = 0.0) -> None:
+        super().__init__()
+        if obs_dim <= 0 or action_dim <= 0:
+            raise ValueError(f"obs_dim: need obs_dim > 0 and action_dim > 0, got {obs_dim}, {action_dim}")
+        if d_model <= 0 or n_heads <= 0 or d_model % n_heads:
+            raise ValueError(f"d_model: must be a positive multiple of n_heads, got {d_model}, {n_heads}")
+        if n_layers <= 0:
+            raise ValueError(f"n_layers: must be positive, got {n_layers}")
+        self.obs_dim, self.action_dim, self.n_heads = obs_dim, action_dim, n_heads
+        self.embed = nn.Linear(obs_dim + 1 + action_dim, d_model)
+        layer = nn.TransformerEncoderLayer(d_model, n_heads, dim_feedforward, dropout, batch_first=True,
+                                           norm_first=True)
+        self.blocks = nn.TransformerEncoder(layer, n_layers, enable_nested_tensor=False)
+        self.norm = nn.LayerNorm(d_model)
+        self.head = _GaussianHead(d_model, obs_dim, head_hidden)
+
+    def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """``(mean, var)`` each ``(B, T, do)``; index ``t`` predicts ``obs[:, t + 1]``."""
+        mask = _check_sequences(obs, actions, mask, self.obs_dim, self.action_dim)
+        B, T = obs.shape[:2]
+        flag = (torch.ones(B, T, 1, dtype=obs.dtype, device=obs.device) if mask is None
+                else mask[..., None].to(obs.dtype))
+        obs = torch.where(flag > 0, obs, torch.zeros((), dtype=obs.dtype, device=obs.device))
+        h = self.embed(torch.cat([obs, flag, actions], dim=-1))
+        bias = alibi_causal_bias(T, self.n_heads, h).repeat(B, 1, 1)  # (B * heads, T, T)
+        h = self.norm(self.blocks(h, mask=bias))
+        return self.head(h)

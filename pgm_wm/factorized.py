@@ -31,7 +31,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from ._checks import check_last_dims, check_mask, check_nonnegative, check_positive, check_tensor
+from ._checks import check_finite, check_last_dims, check_mask, check_nonnegative, check_positive, check_tensor
 from .gaussian import Gaussian
 
 __all__ = [
@@ -155,7 +155,7 @@ class FactorizedBelief:
                                 self.var_lower[..., index, :], self.cov_side[..., index, :])
 
     def drop_side(self) -> "FactorizedBelief":
-        """The same belief with ``cov_side`` set to zero: a purely diagonal covariance.
+        r"""The same belief with ``cov_side`` set to zero: a purely diagonal covariance.
 
         Used by the diagonal-only ablation of Chapter 3 (``RKN(..., diagonal_only=True)``). With
         :math:`\sigma^s = 0` the update, Eq. (rkn-update), leaves the lower half untouched.
@@ -207,7 +207,8 @@ def factorized_update(
     r"""Exact Kalman update of a factorized belief with :math:`H = [I, 0]`, Eq. (rkn-update).
 
     With latent observation :math:`w` of variance :math:`\sigma^{obs}` and
-    :math:`S = \sigma^u + \sigma^{obs}` (elementwise),
+    :math:`S = \sigma^u + \sigma^{obs}` (elementwise), the Kalman gain is
+    :math:`[\mathrm{diag}(\sigma^u\oslash S);\ \mathrm{diag}(\sigma^s\oslash S)]` and
 
     .. math::
         z^{u+} &= z^u + \sigma^u\odot(w - z^u)\oslash S, &
@@ -216,13 +217,20 @@ def factorized_update(
         \sigma^{s+} &= \sigma^s\odot\sigma^{obs}\oslash S, \qquad
         \sigma^{l+} = \sigma^l - \sigma^s\odot\sigma^s\oslash S.
 
+    Exact: it equals the dense update :math:`\Sigma^+ = (I - KH)\Sigma^-` to rounding error.
     (The thesis prints :math:`\sigma^u\odot\sigma^u\oslash S` and :math:`\sigma^u\odot\sigma^s\oslash S`
-    for the first two variances; those are typos — see the book's errata page.)
+    for the first two variances and :math:`\sigma^l` instead of :math:`\sigma^s` in the lower mean;
+    those are typos — see the book's errata page.) :math:`\sigma^{u+}` and :math:`\sigma^{s+}` are
+    computed in the product form above, which has no cancellation in floating point.
+
+    A missing observation (``mask`` False) multiplies the gain by zero, so the posterior equals
+    the prior exactly; ``w`` and ``w_var`` must still be finite there (any finite values).
 
     Args:
         w: latent observation ``(..., m)``; w_var: its variance ``(..., m)``, positive.
         mask: ``(...)`` bool, True = observed. Where False the posterior equals the prior.
-        validate: check ``w_var > 0`` (set False inside training loops to avoid a host sync).
+        validate: check ``w_var > 0`` and finite (set False inside training loops to avoid a
+            host sync); shapes are always checked.
     """
     if not isinstance(belief, FactorizedBelief):
         raise ValueError(f"belief: expected a FactorizedBelief, got {type(belief).__name__}")
@@ -231,19 +239,20 @@ def factorized_update(
     check_last_dims("w_var", w_var, (m,))
     if validate:
         check_positive("w_var", w_var)
-    S = belief.var_upper + w_var
-    resid = (w - belief.mean_upper) / S
-    mean = belief.mean + torch.cat([belief.var_upper * resid, belief.cov_side * resid], dim=-1)
-    post = FactorizedBelief(
-        mean,
-        belief.var_upper * w_var / S,
-        belief.var_lower - belief.cov_side * belief.cov_side / S,
-        belief.cov_side * w_var / S,
-    )
+        check_finite("w", w)
+    su, sl, ss = belief.var_upper, belief.var_lower, belief.cov_side
+    inv_S = 1.0 / (su + w_var)
     if mask is None:
-        return post
-    mask = check_mask("mask", mask, tuple(post.mean.shape[:-1]))
-    return post.where(mask, belief)
+        ratio = w_var * inv_S  # σ^obs ⊘ S
+    else:
+        mask = check_mask("mask", mask, tuple(torch.broadcast_shapes(belief.mean.shape[:-1], w.shape[:-1])))
+        keep = mask.to(inv_S.dtype)[..., None]
+        inv_S = inv_S * keep  # zero gain where the observation is missing
+        ratio = w_var * inv_S + (1.0 - keep)  # = σ^obs ⊘ S where observed, exactly 1 where missing
+    gain_u, gain_l = su * inv_S, ss * inv_S
+    resid = w - belief.mean_upper
+    mean = belief.mean + torch.cat([gain_u * resid, gain_l * resid], dim=-1)
+    return FactorizedBelief(mean, su * ratio, sl - gain_l * ss, ss * ratio)
 
 
 def known_input(b: Tensor) -> FactorizedBelief:
@@ -345,7 +354,7 @@ def factorized_predict_from_matrix(
 def _predict_core(
     belief: FactorizedBelief, A: Tensor, trans_var: Tensor, causes: Sequence[FactorizedBelief]
 ) -> FactorizedBelief:
-    """Arithmetic of Eq. (rkn-predict) without input checks; ``A: (..., 2m, 2m)``.
+    r"""Arithmetic of Eq. (rkn-predict) without input checks; ``A: (..., 2m, 2m)``.
 
     Uses the structure of :math:`\Sigma` to form :math:`A\Sigma` with elementwise products
     (column block ``u`` of :math:`A\Sigma` is :math:`A_{:,u}\,\mathrm{diag}(\sigma^u) +

@@ -136,11 +136,9 @@ def _sliding_mean(per_entry: Tensor, weights: Tensor, window: int) -> Tensor:
     """Weighted mean of ``per_entry: (B, T, ...)`` over the batch, the trailing dimensions and the
     time steps ``max(0, t - window + 1) .. t`` for every ``t``: returns ``(T,)``."""
     dims = [0] + list(range(2, per_entry.ndim))
-    s = (per_entry * weights).sum(dims).cumsum(0)
-    n = weights.sum(dims).cumsum(0)
-    pad = lambda x: torch.cat([x.new_zeros(window), x])  # noqa: E731
-    s_w = s - pad(s)[: s.shape[0]]
-    n_w = n - pad(n)[: n.shape[0]]
+    trailing = lambda x: torch.cat([x.new_zeros(window - 1), x]).unfold(0, window, 1).sum(-1)  # noqa: E731
+    s_w = trailing((per_entry * weights).sum(dims))
+    n_w = trailing(weights.sum(dims))
     if bool((n_w <= 0).any()):
         raise ValueError("mask: some sliding window selects no entries")
     return s_w / n_w

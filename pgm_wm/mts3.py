@@ -81,6 +81,7 @@ __all__ = [
     "decouple_halves",
     "factorized_linear_cause",
     "diagonal_filter",
+    "run_fast_level",
     "task_predict",
     "TaskSSM",
     "MTS3Output",
@@ -363,19 +364,18 @@ class TaskSSM(nn.Module):
         return set_condition(prior, beta, beta_var, mask, validate=False)
 
 
-# ----------------------------------------------------------------------------- the 2-level model
+# ----------------------------------------------------------------------------- the fast level
+def _map_belief(b: FactorizedBelief, fn: Callable[[Tensor], Tensor]) -> FactorizedBelief:
+    return FactorizedBelief(fn(b.mean), fn(b.var_upper), fn(b.var_lower), fn(b.cov_side))
+
+
 def _cat_beliefs(beliefs: Sequence[FactorizedBelief], dim: int = -2) -> FactorizedBelief:
     return FactorizedBelief(*(torch.cat([getattr(b, f) for b in beliefs], dim=dim)
                               for f in ("mean", "var_upper", "var_lower", "cov_side")))
 
 
-def _slice_time(b: FactorizedBelief, T: int) -> FactorizedBelief:
-    return FactorizedBelief(b.mean[:, :T], b.var_upper[:, :T], b.var_lower[:, :T], b.cov_side[:, :T])
-
-
-def _cat_outputs(outs: Sequence[FilterOutput], T: int) -> FilterOutput:
-    return FilterOutput(*(_slice_time(_cat_beliefs([getattr(o, f) for o in outs]), T)
-                          for f in ("prior", "posterior", "predicted")))
+def _map_output(out: FilterOutput, fn: Callable[[Tensor], Tensor]) -> FilterOutput:
+    return FilterOutput(*(_map_belief(getattr(out, f), fn) for f in ("prior", "posterior", "predicted")))
 
 
 def _check_fast(fast: AcRKN) -> None:
@@ -384,37 +384,6 @@ def _check_fast(fast: AcRKN) -> None:
     if not isinstance(fast.control, (MLPControl, LinearControl, ZeroControl)):
         raise ValueError("fast: the control model must not depend on the state (MLPControl, LinearControl "
                          "or ZeroControl), so that b(a) can be computed for a whole window at once")
-
-
-def _control_terms(fast: AcRKN, actions: Tensor) -> Tensor:
-    """:math:`b(a_t)` for all steps at once, ``(B, T, 2m)`` (state-independent control models)."""
-    zeros = actions.new_zeros(*actions.shape[:-1], 2 * fast.latent_obs_dim)
-    return fast.control(actions, zeros)
-
-
-def _fast_window(fast: AcRKN, obs: Tensor, b: Tensor, observed: Tensor, task: FactorizedBelief,
-                 init: FactorizedBelief | None) -> FilterOutput:
-    r"""Run the fast level over one window, Eq. (mts3-fast-predict): the control term :math:`b(a_t)`
-    (known, ``b: (B, H, 2m)``) and the task cause :math:`C l_k` (``task``, constant over the window)
-    enter every predict step as one combined independent cause.
-
-    With a constant transition with diagonal blocks (``num_basis=1``, ``bandwidth=0``) this uses
-    :func:`diagonal_filter`, the same equations written elementwise (about 3x fewer tensor
-    operations per step); otherwise the general :meth:`pgm_wm.acrkn.AcRKN.filter`.
-    """
-    tr = fast.transition
-    if tr.num_basis == 1 and tr.bandwidth == 0 and not getattr(fast.rkn, "diagonal_only", False):
-        w, w_var = fast.encoder(obs)
-        if init is None:
-            init = fast.rkn.initial_belief((obs.shape[0],), obs)
-        blocks = [torch.diagonal(x) for x in tr.blocks(init.mean)]
-        return diagonal_filter(init, w, w_var, observed, blocks, tr.trans_var, b, task)
-    means = b + task.mean.unsqueeze(-2)
-
-    def causes_fn(t: int, post: FactorizedBelief) -> list[FactorizedBelief]:
-        return [FactorizedBelief(means[:, t], task.var_upper, task.var_lower, task.cov_side)]
-
-    return fast.filter(obs, None, observed, causes_fn, init)
 
 
 def diagonal_filter(
@@ -430,23 +399,24 @@ def diagonal_filter(
     r"""The RKN filter loop (update, then predict) for a constant transition with **diagonal**
     blocks, written elementwise. Same equations as :func:`pgm_wm.factorized.factorized_update`
     (Eq. rkn-update) and :func:`pgm_wm.factorized.factorized_predict` (Eq. rkn-predict), exact for
-    this structure, and tested equal to them.
+    this structure, tested equal to them, and about 3x fewer tensor operations per step.
 
     The update is written with the observation precision :math:`p = m_t\oslash\sigma^{obs}`
-    (``m_t`` the 0/1 mask), so a missing observation (:math:`p = 0`) leaves the belief unchanged
-    without a branch: with :math:`d = 1 + \sigma^u\odot p`,
+    (:math:`m_t\in\{0,1\}` the mask), so a missing observation (:math:`p = 0`) leaves the belief
+    unchanged without a branch: with :math:`g = p\oslash(1 + \sigma^u\odot p)`,
 
-    .. math:: z^{u+} = z^u + \sigma^u\odot p\odot(w - z^u)\oslash d,\quad
-              z^{l+} = z^l + \sigma^s\odot p\odot(w - z^u)\oslash d,\quad
-              \sigma^{u+} = \sigma^u\oslash d,\quad \sigma^{s+} = \sigma^s\oslash d,\quad
-              \sigma^{l+} = \sigma^l - \sigma^s\odot\sigma^s\odot p\oslash d .
+    .. math:: z^{u+} = z^u + \sigma^u\odot g\odot(w - z^u),\quad
+              z^{l+} = z^l + \sigma^s\odot g\odot(w - z^u),\quad
+              \sigma^{u+} = \sigma^u\odot(1 - \sigma^u\odot g),\quad
+              \sigma^{s+} = \sigma^s\odot(1 - \sigma^u\odot g),\quad
+              \sigma^{l+} = \sigma^l - \sigma^s\odot\sigma^s\odot g .
 
-    The predict adds the known inputs ``inputs: (B, T, 2m)`` and the constant independent cause
-    ``task`` (mean ``(B, 2m)`` added too, variances added to the noise).
+    The predict adds the known inputs ``inputs: (N, T, 2m)`` and one constant independent cause
+    ``task`` (mean ``(N, 2m)`` added to the mean, its variances to the noise).
 
     Args:
-        init: prior of the first step. w, w_var: ``(B, T, m)``. mask: ``(B, T)`` bool.
-        A_diag: the diagonals ``(a11, a12, a21, a22)``, each ``(m,)``. trans_var: ``(2m,)``.
+        init: prior of the first step, batch ``(N,)``. w, w_var: ``(N, T, m)``. mask: ``(N, T)`` bool.
+        A_diag: the diagonals ``(a11, a12, a21, a22)`` of the blocks, each ``(m,)``. trans_var: ``(2m,)``.
     """
     m = init.latent_obs_dim
     a11, a12, a21, a22 = A_diag
@@ -458,7 +428,7 @@ def diagonal_filter(
     noise_u = trans_var[:m] + task.var_upper
     noise_l = trans_var[m:] + task.var_lower
     noise_s = task.cov_side
-    # coefficients of the covariance predict (Eq. rkn-predict with diagonal blocks)
+    # coefficients of the covariance predict, Eq. (rkn-predict) with diagonal blocks
     cuu, cus, cul = a11 * a11, 2.0 * a11 * a12, a12 * a12
     clu, cls, cll = a21 * a21, 2.0 * a21 * a22, a22 * a22
     csu, css, csl = a21 * a11, a22 * a11 + a21 * a12, a22 * a12
@@ -488,6 +458,76 @@ def diagonal_filter(
     return FilterOutput(belief(0), belief(5), belief(10))
 
 
+def _window_filter(fast: AcRKN, w: Tensor, w_var: Tensor, observed: Tensor, b: Tensor, task: FactorizedBelief,
+                   init: FactorizedBelief | None) -> FilterOutput:
+    r"""The fast level over one window (or a batch of windows), Eq. (mts3-fast-predict): the control
+    term :math:`b(a_t)` (known, ``b: (N, H, 2m)``) and the task cause :math:`C l_k` (``task``, batch
+    ``(N,)``, constant over the window) enter every predict step as independent causes.
+    Diagonal blocks: :func:`diagonal_filter`; otherwise the RKN's general loop."""
+    tr = fast.transition
+    if init is None:
+        init = fast.rkn.initial_belief(w.shape[:1], w)
+    if tr.num_basis == 1 and tr.bandwidth == 0 and not getattr(fast.rkn, "diagonal_only", False):
+        blocks = [torch.diagonal(x) for x in tr.blocks(init.mean)]
+        return diagonal_filter(init, w, w_var, observed, blocks, tr.trans_var, b, task)
+    means = b + task.mean.unsqueeze(-2)
+
+    def causes_fn(t: int, post: FactorizedBelief) -> list[FactorizedBelief]:
+        return [FactorizedBelief(means[:, t], task.var_upper, task.var_lower, task.cov_side)]
+
+    return fast.rkn.filter(w, w_var, observed, causes_fn, init)
+
+
+def run_fast_level(fast: AcRKN, obs: Tensor, actions: Tensor, observed: Tensor, task: FactorizedBelief,
+                   window: int, detach_fast: bool = True, parallel_windows: bool = True) -> FilterOutput:
+    r"""Run the fast level over ``K`` windows, conditioned window by window on the task causes.
+
+    Args:
+        fast: the fast :class:`pgm_wm.acrkn.AcRKN` (state-independent control model).
+        obs: ``(B, K * H, do)``, zero where not observed; actions: ``(B, K * H, da)``;
+        observed: ``(B, K * H)`` bool.
+        task: the cause :math:`C l_k` for every window, batch ``(B, K)``.
+        detach_fast: cut gradients of the fast belief at window boundaries.
+        parallel_windows: with ``detach_fast`` and gradients enabled, first run all windows in
+            order **without** gradients to get each window's initial belief, then run all windows
+            at once as a batch of ``B * K`` sequences of ``H`` steps. Values and gradients equal the
+            sequential run (the initial beliefs are detached anyway) at a fraction of the cost:
+            the recorded graph is ``H`` steps deep instead of ``K * H``.
+
+    Returns the fast beliefs ``(B, K * H, ...)``. The prior of the first step of window ``k`` is the
+    prior after the last step of window ``k - 1``.
+    """
+    B, Tp = obs.shape[:2]
+    H = window
+    K = Tp // H
+    if Tp != K * H or tuple(task.mean.shape[:2]) != (B, K):
+        raise ValueError(f"task: expected batch (B, K) = {(B, K)} for {Tp} steps and window {H}")
+    zeros = actions.new_zeros(*actions.shape[:-1], 2 * fast.latent_obs_dim)
+    b = fast.control(actions, zeros)
+    w, w_var = fast.encoder(obs)
+    at = lambda k: _map_belief(task, lambda x: x[:, k])  # noqa: E731
+    sl = lambda x, k: x[:, k * H:(k + 1) * H]  # noqa: E731
+    if detach_fast and parallel_windows and torch.is_grad_enabled() and K > 1:
+        inits = [fast.rkn.initial_belief((B,), w)]
+        with torch.no_grad():
+            for k in range(K - 1):
+                out = _window_filter(fast, sl(w, k), sl(w_var, k), sl(observed, k), sl(b, k), at(k), inits[-1])
+                inits.append(out.predicted.at(-1))
+        init = _map_belief(FactorizedBelief.stack(inits), lambda x: x.reshape(B * K, x.shape[-1]))
+        flat = lambda x: x.reshape(B * K, H, *x.shape[2:])  # noqa: E731
+        task_flat = _map_belief(task, lambda x: x.reshape(B * K, x.shape[-1]))
+        out = _window_filter(fast, flat(w), flat(w_var), flat(observed), flat(b), task_flat, init)
+        return _map_output(out, lambda x: x.reshape(B, K * H, x.shape[-1]))
+    outs: list[FilterOutput] = []
+    init: FactorizedBelief | None = None
+    for k in range(K):
+        out = _window_filter(fast, sl(w, k), sl(w_var, k), sl(observed, k), sl(b, k), at(k), init)
+        last = out.predicted.at(-1)
+        init = last.detach() if detach_fast else last
+        outs.append(out)
+    return FilterOutput(*(_cat_beliefs([getattr(o, f) for o in outs]) for f in ("prior", "posterior", "predicted")))
+
+
 @dataclass(frozen=True)
 class _Prepared:
     obs: Tensor          # (B, Tp, do), zero where not observed
@@ -509,6 +549,14 @@ def _prepare(obs: Tensor, actions: Tensor, mask: Tensor | None, multiple: int,
                      pad_to_windows(observed, multiple), pad_to_windows(present, multiple), mask, T)
 
 
+def _finish(fast: AcRKN, out: FilterOutput, obs: Tensor, p: _Prepared) -> tuple[FilterOutput, Tensor, Tensor]:
+    """Cut the padding and decode the predicted beliefs."""
+    out = _map_output(out, lambda x: x[:, : p.T])
+    mean, var = fast.decode_predictions(out, obs, p.mask)
+    return out, mean, var
+
+
+# ----------------------------------------------------------------------------- the 2-level model
 @dataclass(frozen=True)
 class MTS3Output:
     """Everything a 2-level MTS3 run produced.
@@ -534,18 +582,19 @@ class MTS3(nn.Module):
     """Two-level MTS3: a fast ac-RKN conditioned, window by window, on a slow task SSM.
 
     Args:
-        fast: the fast level, an :class:`pgm_wm.acrkn.AcRKN` (its ``filter`` takes the task term as
-            an extra cause).
+        fast: the fast level, an :class:`pgm_wm.acrkn.AcRKN` with a state-independent control model.
         slow: the slow level, a :class:`TaskSSM` (not ``conditioned``); its ``window`` is :math:`H`.
         task_matrix: :math:`C` of Eq. (mts3-fast-predict), a :class:`BlockMatrix`.
         detach_fast: cut the gradient of the fast belief between windows (default True).
+        parallel_windows: see :func:`run_fast_level` (same values and gradients, faster training).
 
     ``forward(obs, actions, mask) -> (mean, var)`` follows the world-model interface of
     :mod:`pgm_wm.baselines` (index ``t`` predicts :math:`o_{t+1}`); :meth:`run` returns all beliefs.
     ``T`` need not be a multiple of :math:`H`: the last window is padded and the padding masked.
     """
 
-    def __init__(self, fast: AcRKN, slow: TaskSSM, task_matrix: BlockMatrix, detach_fast: bool = True) -> None:
+    def __init__(self, fast: AcRKN, slow: TaskSSM, task_matrix: BlockMatrix, detach_fast: bool = True,
+                 parallel_windows: bool = True) -> None:
         super().__init__()
         _check_fast(fast)
         if not isinstance(slow, TaskSSM) or slow.above_matrix is not None:
@@ -556,7 +605,7 @@ class MTS3(nn.Module):
         if slow.obs_dim != fast.obs_dim:
             raise ValueError("slow: obs_dim differs from the fast level's")
         self.fast, self.slow, self.task_matrix = fast, slow, task_matrix
-        self.detach_fast = detach_fast
+        self.detach_fast, self.parallel_windows = detach_fast, parallel_windows
         self.window = slow.window
         self.obs_dim, self.action_dim = fast.obs_dim, slow.action_dim
 
@@ -568,29 +617,21 @@ class MTS3(nn.Module):
         observed_w = to_windows(p.observed, H)
         beta, beta_var = self.slow.encode_observations(to_windows(p.obs, H))
         alpha = self.slow.encode_actions(to_windows(p.actions, H), to_windows(p.present, H))
-        b = _control_terms(self.fast, p.actions)
-
+        # slow level, window by window (Eqs. mts3-task-predict and mts3-task-update)
         task_post = self.slow.initial_belief((B,), obs)
-        fast_init: FactorizedBelief | None = None
-        outs, priors, posts = [], [], []
+        priors, posts = [], []
         for k in range(K):
-            # 1. slow predict: uses beta of windows < k and alpha of windows <= k only
             a_k = None if alpha is None else (alpha[0][:, k], alpha[1][:, k])
-            task_prior = self.slow.predict(task_post, a_k)
-            # 2. fast filter over window k, conditioned on the task PRIOR (Eq. mts3-fast-predict)
-            cause = self.task_matrix.cause(task_prior)
-            sl = slice(k * H, (k + 1) * H)
-            out = _fast_window(self.fast, p.obs[:, sl], b[:, sl], p.observed[:, sl], cause, fast_init)
-            last = out.predicted.at(-1)
-            fast_init = last.detach() if self.detach_fast else last
-            # 3. slow update with window k's abstract observations
+            task_prior = self.slow.predict(task_post, a_k)  # uses beta_{<k}, alpha_{<=k} only
             task_post = self.slow.update(task_prior, beta[:, k], beta_var[:, k], observed_w[:, k])
-            outs.append(out)
             priors.append(task_prior)
             posts.append(task_post)
-        fast_out = _cat_outputs(outs, p.T)
-        mean, var = self.fast.decode_predictions(fast_out, obs, p.mask)
-        return MTS3Output(mean, var, fast_out, FactorizedBelief.stack(priors), FactorizedBelief.stack(posts),
+        task_prior, task_post = FactorizedBelief.stack(priors), FactorizedBelief.stack(posts)
+        # fast level: window k is conditioned on the task PRIOR of window k (Eq. mts3-fast-predict)
+        out = run_fast_level(self.fast, p.obs, p.actions, p.observed, self.task_matrix.cause(task_prior), H,
+                             self.detach_fast, self.parallel_windows)
+        out, mean, var = _finish(self.fast, out, obs, p)
+        return MTS3Output(mean, var, out, task_prior, task_post,
                           None if alpha is None else alpha[0], None if alpha is None else alpha[1])
 
     def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -616,15 +657,16 @@ class HierarchicalMTS3(nn.Module):
     r"""N-level MTS3: the fast ac-RKN plus a list of task levels ``levels[0..N-2]`` with windows
     :math:`H_1 < H_2 < \dots`, each a multiple of the previous one.
 
-    Level :math:`i` (``levels[i]``) is stepped at the start of each of its windows, top-down,
-    conditioned on the current prior of level :math:`i+1` (``levels[i].above_matrix``; the top
-    level is unconditioned); at the end of each of its windows it is updated, bottom-up, with its
-    window's abstract observations. The fast level runs in chunks of :math:`H_1` steps,
-    conditioned on the prior of ``levels[0]`` through ``task_matrix``. No task level: the ac-RKN.
+    Scheduling (:meth:`run`), walking through time in steps of :math:`H_1`: at the start of each of
+    its windows level :math:`i` predicts, top-down, conditioned on the current prior of level
+    :math:`i+1` (``levels[i].above_matrix``; the top level is unconditioned); at the end of each of
+    its windows it is updated, bottom-up, with its window's abstract observations. The fast level
+    runs in windows of :math:`H_1` steps conditioned on the prior of ``levels[0]`` through
+    ``task_matrix``. With no task level this is the ac-RKN.
     """
 
     def __init__(self, fast: AcRKN, levels: Sequence[TaskSSM], task_matrix: BlockMatrix | None = None,
-                 detach_fast: bool = True) -> None:
+                 detach_fast: bool = True, parallel_windows: bool = True) -> None:
         super().__init__()
         _check_fast(fast)
         levels = list(levels)
@@ -645,21 +687,24 @@ class HierarchicalMTS3(nn.Module):
         if levels and (task_matrix is None or task_matrix.m != m):
             raise ValueError(f"task_matrix: required (a BlockMatrix with m={m}) when there are task levels")
         self.fast, self.levels, self.task_matrix = fast, nn.ModuleList(levels), task_matrix
-        self.detach_fast = detach_fast
+        self.detach_fast, self.parallel_windows = detach_fast, parallel_windows
         self.obs_dim = fast.obs_dim
         self.windows = [lev.window for lev in levels]
 
     def run(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> HierarchicalOutput:
         """Filter ``obs: (B, T, do)``, ``actions: (B, T, da)``, ``mask: (B, T)``."""
         levels = list(self.levels)
-        if not levels:
-            mask = _check_sequences(obs, actions, mask, self.obs_dim)
-            out = self.fast.filter(obs, actions, mask)
-            mean, var = self.fast.decode_predictions(out, obs, mask)
+        action_dim = self.fast.control.action_dim
+        if not levels:  # the ac-RKN: one window spanning the sequence, no task cause
+            p = _prepare(obs, actions, mask, obs.shape[1], self.obs_dim, action_dim)
+            m2 = 2 * self.fast.latent_obs_dim
+            zero = obs.new_zeros(obs.shape[0], 1, m2)
+            none = FactorizedBelief(zero, zero[..., : m2 // 2], zero[..., : m2 // 2], zero[..., : m2 // 2])
+            out = run_fast_level(self.fast, p.obs, p.actions, p.observed, none, p.T)
+            out, mean, var = _finish(self.fast, out, obs, p)
             return HierarchicalOutput(mean, var, out, [], [])
-        p = _prepare(obs, actions, mask, self.windows[-1], self.obs_dim, levels[0].action_dim)
+        p = _prepare(obs, actions, mask, self.windows[-1], self.obs_dim, action_dim)
         B, Tp = obs.shape[0], p.obs.shape[1]
-        b = _control_terms(self.fast, p.actions)
         enc = []
         for lev in levels:
             H = lev.window
@@ -670,10 +715,7 @@ class HierarchicalMTS3(nn.Module):
         prior: list[FactorizedBelief | None] = [None] * len(levels)
         priors: list[list[FactorizedBelief]] = [[] for _ in levels]
         posts: list[list[FactorizedBelief]] = [[] for _ in levels]
-        H1 = self.windows[0]
-        fast_init: FactorizedBelief | None = None
-        outs = []
-        for t0 in range(0, Tp, H1):
+        for t0 in range(0, Tp, self.windows[0]):
             for i in reversed(range(len(levels))):  # window starts: top-down predicts
                 if t0 % self.windows[i] == 0:
                     k = t0 // self.windows[i]
@@ -681,23 +723,18 @@ class HierarchicalMTS3(nn.Module):
                     a_k = None if alpha is None else (alpha[0][:, k], alpha[1][:, k])
                     prior[i] = levels[i].predict(post[i], a_k, prior[i + 1] if i + 1 < len(levels) else None)
                     priors[i].append(prior[i])
-            cause = self.task_matrix.cause(prior[0])
-            sl = slice(t0, t0 + H1)
-            out = _fast_window(self.fast, p.obs[:, sl], b[:, sl], p.observed[:, sl], cause, fast_init)
-            last = out.predicted.at(-1)
-            fast_init = last.detach() if self.detach_fast else last
-            outs.append(out)
-            t1 = t0 + H1
+            t1 = t0 + self.windows[0]
             for i in range(len(levels)):  # window ends: bottom-up updates
                 if t1 % self.windows[i] == 0:
                     k = t1 // self.windows[i] - 1
                     beta, beta_var, _, observed_w = enc[i]
                     post[i] = levels[i].update(prior[i], beta[:, k], beta_var[:, k], observed_w[:, k])
                     posts[i].append(post[i])
-        fast_out = _cat_outputs(outs, p.T)
-        mean, var = self.fast.decode_predictions(fast_out, obs, p.mask)
-        return HierarchicalOutput(mean, var, fast_out, [FactorizedBelief.stack(x) for x in priors],
-                                  [FactorizedBelief.stack(x) for x in posts])
+        task_priors = [FactorizedBelief.stack(x) for x in priors]
+        out = run_fast_level(self.fast, p.obs, p.actions, p.observed, self.task_matrix.cause(task_priors[0]),
+                             self.windows[0], self.detach_fast, self.parallel_windows)
+        out, mean, var = _finish(self.fast, out, obs, p)
+        return HierarchicalOutput(mean, var, out, task_priors, [FactorizedBelief.stack(x) for x in posts])
 
     def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
         out = self.run(obs, actions, mask)

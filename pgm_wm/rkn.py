@@ -268,7 +268,7 @@ class FilterOutput:
 
 
 class RKN(nn.Module):
-    """Recurrent Kalman Network: ``encoder -> [update, predict]* -> decoder``.
+    r"""Recurrent Kalman Network: ``encoder -> [update, predict]* -> decoder``.
 
     :meth:`filter` is the recurrent core and takes an optional ``causes_fn(t, posterior)``
     returning extra independent causes for the predict step from ``t`` to ``t + 1`` (an action

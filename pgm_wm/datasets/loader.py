@@ -19,6 +19,7 @@ Every dataset is a set of equally long sequences. Shapes (``n`` sequences of
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +29,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._checks import check_last_dims
 from . import nile as _nile
 from ._io import META_KEY, SEP
 from .pendulum import render_pendulum
@@ -66,11 +68,24 @@ def data_dir() -> Path:
 
 @dataclass(repr=False)
 class SequenceData:
-    """One split of one dataset. Shapes are listed in the module docstring.
+    """One split of one dataset (``n`` sequences of ``T`` steps).
+
+    Fields:
+        name, split: what was loaded.
+        obs: ``(n, T, d_obs)``; 0 at missing steps (see ``valid``).
+        actions: ``(n, T, d_act)`` or ``None``; ``actions[:, t]`` acts between
+            ``obs[:, t]`` and ``obs[:, t + 1]``.
+        valid: bool ``(n, T)``; ``False`` = observation missing.
+        targets: ``(n, T, d_tgt)`` or ``None`` (pendulum ``(sin, cos)``; tracking clean positions).
+        hidden: evaluation-only tensors, leading dims ``(n, T)`` (e.g. ``payload (n, T)`` in kg).
+        meta: ``dt``, ``units``, ``obs_names``, ``action_names``, ``generator`` (name,
+            version, seeds, params), ``seed``, ``description``, ... (JSON-like dict).
+        stats: training-split statistics ``obs_mean/obs_std (d_obs,)``,
+            ``act_mean/act_std (d_act,)``, ``diff_mean/diff_std (d_obs,)`` (no diff
+            statistics for the pendulum's images).
 
     The normalisation helpers take tensors whose last dimension is the feature
-    dimension (any leading dims) and use the training-split statistics in
-    ``stats``: ``x_norm = (x - mean) / std``.
+    dimension (any leading dims) and use ``stats``: ``x_norm = (x - mean) / std``.
     """
 
     name: str
@@ -105,11 +120,7 @@ class SequenceData:
         return self.stats[key].to(dtype=like.dtype, device=like.device)
 
     def _check(self, argname: str, x: Tensor, dim: int) -> Tensor:
-        if not isinstance(x, Tensor):
-            raise ValueError(f"{argname}: expected a torch.Tensor, got {type(x).__name__}")
-        if x.ndim < 1 or x.shape[-1] != dim:
-            raise ValueError(f"{argname}: expected shape (..., {dim}), got {tuple(x.shape)}")
-        return x
+        return check_last_dims(argname, x, (dim,))
 
     def normalize_obs(self, obs: Tensor) -> Tensor:
         """``(..., d_obs) -> (..., d_obs)``: ``(obs - obs_mean) / obs_std``."""
@@ -184,8 +195,6 @@ def _path(name: str) -> Path:
 
 def _read_split_npz(path: Path, split: str) -> tuple[dict[str, np.ndarray], dict]:
     """Arrays of one split (keys without the ``<split>__`` prefix) and the file's metadata."""
-    import json
-
     prefix = split + SEP
     with np.load(path, allow_pickle=False) as data:
         meta = json.loads(str(data[META_KEY][()]))
@@ -208,7 +217,9 @@ def _assemble_numpy(name: str, split: str, action: str | None) -> tuple[dict[str
                           "params": {}},
             "source": "Cobb (1978), Biometrika 65(2); Durbin & Koopman; public domain",
             "description": "Annual flow volume of the Nile at Aswan, 1871-1970.",
-            "splits": {"train": {"n": 1, "T": int(len(volume))}},
+            "splits": {"train": {"n": 1, "T": int(len(volume)), "seed": None}},
+            "split_info": {"n": 1, "T": int(len(volume)), "seed": None},
+            "seed": None,
         }
         obs = volume[None, :, None]
         pieces = {"obs": obs, "actions": None, "valid": np.ones(obs.shape[:2], dtype=bool),
@@ -219,6 +230,7 @@ def _assemble_numpy(name: str, split: str, action: str | None) -> tuple[dict[str
     hidden = {key[len("hidden" + SEP):]: val for key, val in arrays.items() if key.startswith("hidden" + SEP)}
     meta = dict(meta)
     meta["split_info"] = meta["splits"][split]
+    meta["seed"] = meta["split_info"]["seed"]
     actions = arrays.get("actions")
     if name in ACTION_OPTIONS:
         chosen = action or meta["default_action"]
@@ -247,20 +259,23 @@ def _assemble_numpy(name: str, split: str, action: str | None) -> tuple[dict[str
     return pieces, meta
 
 
-def _masked_mean_std(x: np.ndarray, mask: np.ndarray, chunk: int = 8192) -> tuple[np.ndarray, np.ndarray]:
+def _masked_mean_std(x: np.ndarray, mask: np.ndarray, chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
     """Mean and (population) std over the rows of ``x (N, d)`` where ``mask (N,)``; float64, two passes."""
-    rows = np.flatnonzero(mask)
-    if rows.size == 0:
+    w = np.asarray(mask, dtype=np.float64)
+    count = w.sum()
+    if count == 0:
         raise ValueError("mask: no valid entries to compute statistics from")
     total = np.zeros(x.shape[1])
-    for start in range(0, rows.size, chunk):
-        total += x[rows[start:start + chunk]].sum(axis=0, dtype=np.float64)
-    mean = total / rows.size
+    for start in range(0, x.shape[0], chunk):
+        total += w[start:start + chunk] @ x[start:start + chunk].astype(np.float64)
+    mean = total / count
     sq = np.zeros(x.shape[1])
-    for start in range(0, rows.size, chunk):
-        dev = x[rows[start:start + chunk]].astype(np.float64) - mean
-        sq += np.einsum("ij,ij->j", dev, dev)
-    return mean, np.sqrt(sq / rows.size)
+    for start in range(0, x.shape[0], chunk):
+        dev = x[start:start + chunk].astype(np.float64)
+        dev -= mean
+        dev *= dev
+        sq += w[start:start + chunk] @ dev
+    return mean, np.sqrt(sq / count)
 
 
 def _compute_stats(pieces: dict[str, Any], with_diff: bool) -> dict[str, np.ndarray]:
@@ -336,5 +351,5 @@ def load(name: str, split: str = "train", dtype: torch.dtype = torch.float32,
         targets=tens(pieces["targets"]),
         hidden={key: tens(val) for key, val in pieces["hidden"].items()},
         meta=meta,
-        stats={key: torch.as_tensor(val).to(dtype) for key, val in stats_np.items()},
+        stats={key: torch.tensor(val, dtype=dtype) for key, val in stats_np.items()},
     )

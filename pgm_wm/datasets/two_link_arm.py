@@ -153,7 +153,7 @@ def simulate_two_link_arm(seed: int, payload: np.ndarray, params: dict | None = 
     cb = (m2 * l2 / 2 + mp_all * l2) / mb
     Ib = m2 * l2**2 / 12 + m2 * (l2 / 2 - cb) ** 2 + mp_all * (l2 - cb) ** 2
     a11 = p["armature"] + m1 * l1**2 / 3 + Ib + mb * (l1**2 + cb**2)   # M11 = a11 + 2 a12 cos q2
-    a12 = mb * l1 * cb                                                 # M12 = a22' + a12 cos q2
+    a12 = mb * l1 * cb                                                 # M12 = a22 + a12 cos q2
     a22 = Ib + mb * cb**2                                              # M22 = armature + a22
     g1 = g * (m1 * l1 / 2 + mb * l1)
     g2 = g * mb * cb
