@@ -46,7 +46,7 @@ import torch
 from torch import Tensor, nn
 
 from ._checks import check_last_dims, check_mask, check_tensor
-from .factorized import FactorizedBelief, known_input
+from .factorized import FactorizedBelief, factorized_predict_from_matrix, known_input
 from .rkn import RKN, FilterOutput, LocallyLinearTransition, mlp
 
 __all__ = [
@@ -54,6 +54,7 @@ __all__ = [
     "LocallyLinearControl",
     "MLPControl",
     "ZeroControl",
+    "NormBoundedTransition",
     "difference_scaling",
     "DifferenceReadout",
     "AcRKN",
@@ -138,6 +139,70 @@ class ZeroControl(_Control):
     def forward(self, action: Tensor, mean: Tensor) -> Tensor:
         self._check(action, mean)
         return torch.zeros_like(mean)
+
+
+class NormBoundedTransition(nn.Module):
+    r"""A locally linear transition whose every :math:`A_t` has spectral norm at most ``max_norm``.
+
+    *Our addition, not in the thesis.* Open-loop prediction runs the predict step many times with
+    no update. If some :math:`\|A_t\|_2 > 1` the latent mean can grow without bound (we see this
+    happen in Chapter 4). :math:`A_t = \sum_k \alpha_k(z) M_k` with :math:`M_k = I + A^{(k)}` is a
+    convex combination (the :math:`\alpha_k` are softmax weights), so
+    :math:`\|A_t\|_2 \le \max_k \|M_k\|_2`. We rescale each basis matrix once per sequence,
+    Eq. (acrkn-norm-bound):
+
+    .. math:: \tilde M_k = M_k \,/\, \max\big(1, \|M_k\|_2 / \rho\big)
+              \quad\Rightarrow\quad \|A_t\|_2 \le \rho \text{ for every } t \text{ and every } z,
+
+    which makes the mean dynamics without inputs non-expansive for ``max_norm`` :math:`\rho\le 1`
+    — for time-varying :math:`A_t` too, where eigenvalues inside the unit circle would not be enough.
+    Wraps (and shares the parameters of) a :class:`pgm_wm.rkn.LocallyLinearTransition`; the band
+    structure and the factorized predict (Eq. rkn-predict) are unchanged.
+    """
+
+    def __init__(self, base: LocallyLinearTransition, max_norm: float = 1.0) -> None:
+        super().__init__()
+        if max_norm <= 0:
+            raise ValueError(f"max_norm: must be positive, got {max_norm}")
+        self.base, self.max_norm = base, float(max_norm)
+        self.latent_obs_dim = base.latent_obs_dim
+
+    @property
+    def trans_var(self) -> Tensor:
+        return self.base.trans_var
+
+    def scaled_basis(self) -> Tensor:
+        """:math:`\tilde M_k`: ``(K, 2m, 2m)`` with spectral norms ``<= max_norm``."""
+        M = self.base.dense_basis()
+        if self.base.add_identity:
+            M = M + torch.eye(M.shape[-1], dtype=M.dtype, device=M.device)
+        norms = torch.linalg.matrix_norm(M, ord=2)
+        return M / torch.clamp(norms / self.max_norm, min=1.0)[:, None, None]
+
+    def dense_matrix(self, mean: Tensor) -> Tensor:
+        """:math:`A_t = \sum_k \alpha_k(z)\tilde M_k`: ``(..., 2m, 2m)``."""
+        check_last_dims("mean", mean, (2 * self.latent_obs_dim,))
+        return self._mix(mean, self.scaled_basis())
+
+    def _mix(self, mean: Tensor, basis: Tensor) -> Tensor:
+        if basis.shape[0] == 1:
+            return basis[0]
+        alpha = self.base.coefficients(mean)
+        n = basis.shape[-1]
+        return (alpha @ basis.reshape(basis.shape[0], n * n)).reshape(*alpha.shape[:-1], n, n)
+
+    def predictor(self) -> Callable[..., FactorizedBelief]:
+        """Predict function ``(post, causes=()) -> prior`` with the basis rescaled once."""
+        basis, q = self.scaled_basis(), self.base.trans_var
+
+        def predict(post: FactorizedBelief, causes: Sequence[FactorizedBelief] = ()) -> FactorizedBelief:
+            return factorized_predict_from_matrix(post, self._mix(post.mean, basis), q, causes, validate=False)
+
+        return predict
+
+    def forward(self, post: FactorizedBelief, causes: Sequence[FactorizedBelief] = ()) -> FactorizedBelief:
+        """Predict step, Eq. (rkn-predict) with the bounded :math:`A_t`."""
+        return self.predictor()(post, causes)
 
 
 def difference_scaling(stats: Mapping[str, Any]) -> tuple[Tensor, Tensor]:
@@ -239,7 +304,7 @@ class AcRKN(nn.Module):
 
     Args:
         encoder: ``obs (..., do) -> (w, w_var) (..., m)``, e.g. :class:`pgm_wm.rkn.ObservationEncoder`.
-        transition: :class:`pgm_wm.rkn.LocallyLinearTransition`.
+        transition: :class:`pgm_wm.rkn.LocallyLinearTransition` or :class:`NormBoundedTransition`.
         control: one of the control models of this module.
         decoder: ``FactorizedBelief -> (mean, var) (..., do)``, e.g. :class:`pgm_wm.rkn.BeliefDecoder`.
         init_var: initial belief variance.
@@ -249,7 +314,7 @@ class AcRKN(nn.Module):
     def __init__(
         self,
         encoder: nn.Module,
-        transition: LocallyLinearTransition,
+        transition: nn.Module,
         control: nn.Module,
         decoder: nn.Module,
         init_var: float = 10.0,
@@ -274,7 +339,7 @@ class AcRKN(nn.Module):
         return self.rkn.encoder
 
     @property
-    def transition(self) -> LocallyLinearTransition:
+    def transition(self) -> nn.Module:
         return self.rkn.transition
 
     @property

@@ -233,12 +233,17 @@ class TransformerBaseline(nn.Module):
     -> Gaussian head (variance ``elu + 1``). Index ``t`` sees observed :math:`o_{\le t}` and
     :math:`a_{\le t}` and predicts :math:`o_{t+1}`. All predictions of a horizon come out of **one**
     pass: a missing observation is simply absent (its token carries only the action), the model's
-    own predictions are never fed back, so errors cannot accumulate through feedback.
+    own predictions are never fed back, so errors cannot accumulate through feedback. ``min_var`` is
+    a floor added to the predicted variance (as in :class:`pgm_wm.mts3.MTS3`).
     """
 
     def __init__(self, obs_dim: int, action_dim: int, d_model: int = 32, n_heads: int = 2, n_layers: int = 2,
-                 dim_feedforward: int = 64, head_hidden: Sequence[int] = (32,), dropout: float = 0.0) -> None:
+                 dim_feedforward: int = 64, head_hidden: Sequence[int] = (32,), dropout: float = 0.0,
+                 min_var: float = 1e-4) -> None:
         super().__init__()
+        if min_var < 0:
+            raise ValueError(f"min_var: must be >= 0, got {min_var}")
+        self.min_var = float(min_var)
         if obs_dim <= 0 or action_dim <= 0:
             raise ValueError(f"obs_dim: need obs_dim > 0 and action_dim > 0, got {obs_dim}, {action_dim}")
         if d_model <= 0 or n_heads <= 0 or d_model % n_heads:
@@ -263,4 +268,5 @@ class TransformerBaseline(nn.Module):
         h = self.embed(torch.cat([obs, flag, actions], dim=-1))
         bias = alibi_causal_bias(T, self.n_heads, h).repeat(B, 1, 1)  # (B * heads, T, T)
         h = self.norm(self.blocks(h, mask=bias))
-        return self.head(h)
+        mean, var = self.head(h)
+        return mean, var + self.min_var

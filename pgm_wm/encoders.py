@@ -22,7 +22,7 @@ __all__ = ["ConvTrunk"]
 class ConvTrunk(nn.Module):
     """A small convolutional feature extractor for flattened single-channel images.
 
-    ``(..., H*W) -> (..., feature_dim)``: reshape to ``(N, 1, H, W)``, then for every entry of
+    ``(..., H*W) -> (..., feature_dim)``: reshape to ``(N, 1, H, W)``, subtract ``pixel_mean``, then for every entry of
     ``channels`` a ``kernel_size`` convolution with stride 2 (padding keeps ``ceil(size / 2)``)
     and ReLU, then flatten, a linear layer to ``feature_dim`` and ReLU. Any number of leading
     (batch, time) dimensions is accepted; frames are processed independently.
@@ -32,6 +32,8 @@ class ConvTrunk(nn.Module):
         channels: output channels of each convolution, e.g. ``(8, 16)``.
         feature_dim: size of the output feature vector.
         kernel_size: odd kernel size of every convolution.
+        pixel_mean: subtracted from every pixel first (0.5 centres intensities in ``[0, 1]``,
+            which makes the first layer learn noticeably faster).
     """
 
     def __init__(
@@ -40,6 +42,7 @@ class ConvTrunk(nn.Module):
         channels: Sequence[int] = (8, 16),
         feature_dim: int = 32,
         kernel_size: int = 3,
+        pixel_mean: float = 0.5,
     ) -> None:
         super().__init__()
         if len(image_shape) != 2 or min(image_shape) <= 0:
@@ -53,6 +56,7 @@ class ConvTrunk(nn.Module):
         self.image_shape = (int(image_shape[0]), int(image_shape[1]))
         self.obs_dim = self.image_shape[0] * self.image_shape[1]
         self.feature_dim = int(feature_dim)
+        self.pixel_mean = float(pixel_mean)
         layers: list[nn.Module] = []
         c_in, (h, w) = 1, self.image_shape
         for c in channels:
@@ -65,5 +69,5 @@ class ConvTrunk(nn.Module):
         """``obs: (..., H*W)`` -> features ``(..., feature_dim)``."""
         check_last_dims("obs", obs, (self.obs_dim,))
         lead = obs.shape[:-1]
-        x = obs.reshape(-1, 1, *self.image_shape)
+        x = obs.reshape(-1, 1, *self.image_shape) - self.pixel_mean
         return self.head(self.convs(x)).reshape(*lead, self.feature_dim)

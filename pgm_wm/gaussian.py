@@ -179,14 +179,12 @@ def _chol_logpdf(diff: Tensor, chol: Tensor) -> Tensor:
     return -0.5 * (sol.square().sum(-1) + logdet + m * _LOG_2PI)
 
 
-def _dot(x: Tensor, h: Tensor) -> Tensor:
-    """``x · h`` over the last dimension; a single GEMV when ``h`` is 1-D."""
-    return x @ h if h.ndim == 1 else (x * h).sum(-1)
-
-
-def _covvec(cov: Tensor, h: Tensor) -> Tensor:
-    """``Σ h`` for ``cov: (..., n, n)``, ``h: (..., n)``; a single GEMV when ``h`` is 1-D."""
-    return cov @ h if h.ndim == 1 else (cov @ h.unsqueeze(-1)).squeeze(-1)
+def _addmm(C: Tensor, A: Tensor, B: Tensor, alpha: float = 1.0) -> Tensor:
+    """``C + alpha · A @ B`` with broadcasting; a single fused BLAS call when all are 2-D."""
+    if C.ndim == 2 and A.ndim == 2 and B.ndim == 2:
+        return torch.addmm(C, A, B, alpha=alpha)
+    AB = A @ B
+    return C + AB if alpha == 1.0 else (C - AB if alpha == -1.0 else C + alpha * AB)
 
 
 # Largest n_out * n_in for which A Σ Aᵀ is computed as one GEMM with a (n_out², n_in²) matrix.
@@ -210,14 +208,37 @@ def _sandwich_operator(A: Tensor) -> Tensor | None:
     return kron.reshape(p * p, q * q).T.contiguous()           # (q², p²)
 
 
-def _sandwich(A: Tensor, cov: Tensor, op: Tensor | None = None) -> Tensor:
-    r""":math:`A\Sigma A^\top` (symmetric) for ``A: (..., p, q)``, ``cov: (..., q, q)``; ``op`` from
-    :func:`_sandwich_operator` selects the single-GEMM path."""
+def _sandwich(A: Tensor, cov: Tensor, op: Tensor | None = None, Q: Tensor | None = None) -> Tensor:
+    r""":math:`A\Sigma A^\top + Q` (symmetric) for ``A: (..., p, q)``, ``cov: (..., q, q)``; ``op``
+    from :func:`_sandwich_operator` selects the single-GEMM path."""
     if op is None:
-        return _sym(A @ cov @ A.transpose(-1, -2))
+        out = _sym(A @ cov @ A.transpose(-1, -2))
+        return out if Q is None else out + Q
     p, q = A.shape
-    flat = cov.reshape(*cov.shape[:-2], q * q) @ op
-    return flat.reshape(*cov.shape[:-2], p, p)
+    lead = cov.shape[:-2]
+    flat = cov.reshape(*lead, q * q)
+    if Q is None:
+        return (flat @ op).reshape(*lead, p, p)
+    Qf = Q.reshape(*Q.shape[:-2], p * p)
+    if flat.ndim == 1 and Qf.ndim == 1:
+        return torch.addmv(Qf, op.T, flat).reshape(p, p)
+    return _addmm(Qf, flat, op).reshape(*torch.broadcast_shapes(lead, Q.shape[:-2]), p, p)
+
+
+def _predict_mean(mean: Tensor, A: Tensor, offset: Tensor | None = None) -> Tensor:
+    r"""Mean part of Eq. (gauss-marginal) with one cause: :math:`A\mu + b`, unchecked."""
+    if A.ndim == 2:
+        return mean @ A.T if offset is None else _addmm(offset, mean, A.T)
+    m = _matvec(A, mean)
+    return m if offset is None else m + offset
+
+
+def _predict_cov(cov: Tensor, A: Tensor, Q: Tensor | None, op: Tensor | None = None) -> Tensor:
+    r"""Covariance part of Eq. (gauss-marginal) with one cause: :math:`A\Sigma A^\top + Q`, unchecked.
+
+    ``op`` is an optional precomputed :func:`_sandwich_operator` of ``A``.
+    """
+    return _sandwich(A, cov, op, Q)
 
 
 def _predict_core(
@@ -228,83 +249,65 @@ def _predict_core(
     offset: Tensor | None,
     op: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
-    r"""One-cause Eq. (gauss-marginal): :math:`(A\mu + b,\; A\Sigma A^\top + Q)`, unchecked.
-
-    ``op`` is an optional precomputed :func:`_sandwich_operator` of ``A``.
-    """
-    m = mean @ A.T if A.ndim == 2 else _matvec(A, mean)
-    if offset is not None:
-        m = m + offset
-    c = _sandwich(A, cov, op)
-    if Q is not None:
-        c = c + Q
-    return m, c
+    r"""One-cause Eq. (gauss-marginal): :math:`(A\mu + b,\; A\Sigma A^\top + Q)`, unchecked."""
+    return _predict_mean(mean, A, offset), _predict_cov(cov, A, Q, op)
 
 
-def _whiten(H: Tensor, R: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    r"""Whitening of the observation model: with :math:`R = L_RL_R^\top`, the observation
-    :math:`\tilde y = L_R^{-1}y` has model :math:`\tilde y = \tilde H x + \tilde\delta`,
-    :math:`\tilde H = L_R^{-1}H`, :math:`\tilde\delta\sim\mathcal N(0, I)`.
+def _update_cov(
+    cov: Tensor, H: Tensor, R: Tensor, weight: Tensor | None = None
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    r"""Covariance half of Eq. (gauss-condition) in Kalman form, unchecked.
 
-    Returns ``(L_R, H̃, log det R, info)`` with ``info`` the Cholesky status of ``R``.
-    """
-    chol, info = torch.linalg.cholesky_ex(R)
-    Hw = torch.linalg.solve_triangular(chol, H, upper=False)
-    logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
-    return chol, Hw, logdet, info
+    With :math:`S = H\Sigma H^\top + R = LL^\top` and :math:`W = L^{-1}H\Sigma`:
 
+    .. math:: K^\top = S^{-1}H\Sigma = L^{-\top}W,\qquad
+              \Sigma^+ = \Sigma - KSK^\top = \Sigma - W^\top W,
 
-def _condition_whitened(
-    mean: Tensor,
-    cov: Tensor,
-    Hw: Tensor,
-    yw: Sequence[Tensor],
-    weight: Tensor | None = None,
-) -> tuple[Tensor, Tensor, Tensor]:
-    r"""Eq. (gauss-condition) for whitened observations, one scalar component at a time.
-
-    Given :math:`\tilde y_j = \tilde h_j^\top x + \tilde\delta_j` with independent unit-variance
-    noise, conditioning on all :math:`m` components jointly equals conditioning on them one
-    after the other (the posterior after :math:`j` components is the prior for the next). Each
-    scalar step, with :math:`p = \Sigma\tilde h_j`, :math:`s = \tilde h_j^\top p + 1`,
-    :math:`g = p/\sqrt s`, :math:`e = (\tilde y_j - \tilde h_j^\top\mu)/\sqrt s`, is
-
-    .. math:: \mu \leftarrow \mu + g\,e,\qquad \Sigma \leftarrow \Sigma - g g^\top,
-
-    i.e. the Kalman update with gain :math:`p/s` (no matrix inverse, and :math:`gg^\top` keeps
-    :math:`\Sigma` exactly symmetric). By the chain rule the evidence is
-    :math:`\log p(\tilde y) = -\tfrac12\sum_j (e_j^2 + \log s_j + \log 2\pi)`.
+    two triangular solves and no inverse; :math:`\Sigma^+` is symmetric by construction. The
+    covariance does not depend on the observed value, so this half can run before (or without)
+    the means.
 
     Args:
-        Hw: ``(..., m, n)`` whitened observation matrix (1-D rows give single-GEMV products).
-        yw: the ``m`` whitened components, each ``(...)``.
+        cov: ``(..., n, n)``; H: ``(..., m, n)``; R: ``(..., m, m)``.
         weight: optional ``(...)`` 0/1 factor; where 0 the update is skipped exactly
-            (``g = 0``) and the step adds nothing to the evidence.
+            (:math:`W = 0`, :math:`K = 0`).
 
-    Returns ``(mean, cov, q)`` with ``q = Σ_j (e_j² + log s_j)`` (weighted); ``q`` is NaN or
-    infinite where some :math:`s_j` was not positive (innovation covariance not positive definite).
+    Returns ``(Σ⁺, L, Kᵀ, info)``: ``L: (..., m, m)`` the Cholesky factor of :math:`S` (for the
+    evidence), ``Kᵀ: (..., m, n)`` the transposed gain, ``info`` non-zero where :math:`S` is
+    not positive definite.
     """
-    acc: Tensor | None = None
-    for j in range(Hw.shape[-2]):
-        h = Hw[..., j, :]
-        p = _covvec(cov, h)
-        s = _dot(p, h) + 1.0
-        r = torch.rsqrt(s)
-        e = (yw[j] - _dot(mean, h)) * r
-        g = p * r.unsqueeze(-1)
-        if weight is not None:
-            g = g * weight.unsqueeze(-1)
-        if g.ndim == 1:   # gain shared by the batch: the rank-1 update e gᵀ is one GEMM
-            mean = mean + e.unsqueeze(-1) @ g.unsqueeze(0)
-        else:
-            mean = torch.addcmul(mean, g, e.unsqueeze(-1))
-        cov = torch.addcmul(cov, g.unsqueeze(-1), g.unsqueeze(-2), value=-1.0)
-        term = torch.addcmul(torch.log(s), e, e)
-        if weight is not None:
-            term = term * weight
-        acc = term if acc is None else acc + term
-    assert acc is not None
-    return mean, cov, acc
+    Ht = H.transpose(-1, -2)
+    PHt = cov @ Ht                                         # Σ Hᵀ: one GEMM when Σ, H are 2-D
+    S = _addmm(R, H, PHt)
+    chol, info = torch.linalg.cholesky_ex(S)               # reads the lower triangle only
+    W = torch.linalg.solve_triangular(chol, PHt.transpose(-1, -2), upper=False)   # L⁻¹ H Σ
+    Kt = torch.linalg.solve_triangular(chol.transpose(-1, -2), W, upper=True)
+    if weight is not None:
+        w = weight[..., None, None]
+        W, Kt = W * w, Kt * w
+    return _addmm(cov, W.transpose(-1, -2), W, alpha=-1.0), chol, Kt, info
+
+
+def _update_mean(
+    mean: Tensor, H: Tensor, y: Tensor, Kt: Tensor, offset: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
+    r"""Mean half of Eq. (gauss-condition): innovation :math:`\varepsilon = y - H\mu - b` and
+    :math:`\mu^+ = \mu + K\varepsilon`, with ``Kt`` :math:`= K^\top` from :func:`_update_cov`.
+
+    Returns ``(μ⁺, ε)``; one or two GEMMs over the batch when ``H`` and ``Kt`` are 2-D.
+    """
+    if offset is not None:
+        y = y - offset
+    innov = _addmm(y, mean, H.T, alpha=-1.0) if H.ndim == 2 else y - _matvec(H, mean)
+    if Kt.ndim == 2:
+        return _addmm(mean, innov, Kt), innov
+    return mean + (innov.unsqueeze(-1) * Kt).sum(-2), innov
+
+
+def _evidence(innov: Tensor, chol: Tensor) -> Tensor:
+    r"""Eq. (gauss-evidence): :math:`\log\mathcal N(\varepsilon\mid 0, LL^\top)` for innovations
+    ``(..., m)`` and Cholesky factors ``(..., m, m)`` (leading dimensions broadcast)."""
+    return _chol_logpdf(innov, chol)
 
 
 def _condition_core(
@@ -321,19 +324,13 @@ def _condition_core(
               \mu^+ = \mu + K(y - H\mu - b),\quad \Sigma^+ = \Sigma - KSK^\top,\quad
               \log p(y) = \log\mathcal N(y\mid H\mu + b, S),
 
-    computed by whitening (:func:`_whiten`) and sequential scalar conditioning
-    (:func:`_condition_whitened`); :math:`\log\det S = \log\det R + \sum_j\log s_j`.
-    Returns ``(mean, cov, log p(y), info)`` where ``info`` is non-zero where ``R`` or
-    :math:`S` is not positive definite.
+    = :func:`_update_cov` + :func:`_update_mean` + :func:`_evidence`.
+    Returns ``(mean, cov, log p(y), info)``; ``info`` is non-zero where :math:`S` is not
+    positive definite.
     """
-    chol, Hw, logdet_r, info_r = _whiten(H, R)
-    resid = y if offset is None else y - offset
-    yw = torch.linalg.solve_triangular(chol, resid.unsqueeze(-1), upper=False).squeeze(-1)
-    new_mean, new_cov, q = _condition_whitened(mean, cov, Hw, yw.unbind(-1))
-    m = y.shape[-1]
-    loglik = -0.5 * (q + logdet_r + m * _LOG_2PI)
-    info = (info_r != 0) | ~torch.isfinite(q)
-    return new_mean, new_cov, loglik, info.to(torch.int32)
+    new_cov, chol, Kt, info = _update_cov(cov, H, R)
+    new_mean, innov = _update_mean(mean, H, y, Kt, offset)
+    return new_mean, new_cov, _evidence(innov, chol), info
 
 
 # ---------------------------------------------------------------------------------------------
@@ -495,9 +492,8 @@ def condition_with_evidence(
               \mu^+ = \mu + K(y - H\mu - b),\quad \Sigma^+ = \Sigma - K S K^\top,
 
     and the evidence :math:`\log p(y) = \log\mathcal N(y\mid H\mu + b, S)` (Eq. gauss-evidence).
-    Computed without any matrix inverse: the observation is whitened with the Cholesky factor
-    of ``R`` and its ``m`` components are conditioned on one after the other (see
-    ``_condition_whitened``), which gives exactly the joint update.
+    Computed with the Cholesky factor of :math:`S` and two triangular solves, no inverse
+    (``_update_cov``); :math:`\Sigma^+` is exactly symmetric.
 
     Shapes: ``H: (..., m, n)``, ``R: (..., m, m)``, ``y: (..., m)``, ``offset: (..., m)``.
     Returns ``(posterior, log p(y))`` with ``log p(y): (...)``.

@@ -60,6 +60,7 @@ __all__ = [
     "RecurrentContextEncoder",
     "HiPRSSM",
     "hip_loss_fn",
+    "floor_variance",
     "infer_trajectory",
     "eval_masks",
     "predict_windows",
@@ -435,17 +436,40 @@ class HiPRSSM(nn.Module):
         return mean, var
 
 
+def floor_variance(model: WorldModel, min_var: float = 1e-8) -> WorldModel:
+    r"""Wrap a world model so that its predictive variances are at least ``min_var``.
+
+    Why: the decoders' ``elu(x) + 1`` is computed as :math:`(e^x - 1) + 1`, which in float32
+    rounds to exactly 0 once :math:`e^x < 6\cdot10^{-8}`. Angle differences of the arm are almost
+    deterministic given the observed velocity, so NLL training drives some variances there, and
+    a single zero variance makes the NLL infinite. The floor (with zero gradient below it) only
+    acts on those entries. ``wrapped(*args, **kw) -> (mean, var.clamp_min(min_var))``.
+    """
+    if min_var <= 0:
+        raise ValueError(f"min_var: must be positive, got {min_var}")
+
+    def wrapped(*args, **kwargs) -> tuple[Tensor, Tensor]:
+        mean, var = model(*args, **kwargs)
+        return mean, var.clamp_min(min_var)
+
+    return wrapped
+
+
 def hip_loss_fn(model: HiPRSSM, keep_prob: float = 1.0, context_steps: int = 1,
-                loss: str = "nll") -> Callable[[tuple[Tensor, ...], torch.Generator], Tensor]:
+                loss: str = "nll", min_var: float = 1e-8) -> Callable[[tuple[Tensor, ...], torch.Generator], Tensor]:
     """A ``loss_fn`` for :func:`pgm_wm.training.fit` on batches ``HiPWindows.tensors()`` =
     ``(obs, actions, valid, context, context_mask)``: a fresh imputation mask per batch
-    (:func:`pgm_wm.training.imputation_mask`), then :func:`pgm_wm.training.prediction_loss`."""
+    (:func:`pgm_wm.training.imputation_mask`, each observation kept with ``keep_prob``, the first
+    ``context_steps`` always), then :func:`pgm_wm.training.prediction_loss` (all valid targets
+    count, observed or not) with variances floored at ``min_var`` (:func:`floor_variance`)."""
     from .training import imputation_mask, prediction_loss
+
+    floored = floor_variance(model, min_var)
 
     def loss_fn(batch: tuple[Tensor, ...], gen: torch.Generator) -> Tensor:
         obs, actions, valid, context, cmask = batch
         mask = imputation_mask(obs.shape[:2], keep_prob, context_steps, gen, device=obs.device) & valid
-        model_fn = lambda o, a, m: model(o, a, m, context, cmask)  # noqa: E731
+        model_fn = lambda o, a, m: floored(o, a, m, context, cmask)  # noqa: E731
         return prediction_loss(model_fn, obs, actions, mask, valid, loss)
 
     return loss_fn

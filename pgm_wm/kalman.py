@@ -21,15 +21,18 @@ differentiable, so noise parameters can be learned by gradient ascent on
 :attr:`KalmanFilterResult.log_likelihood`.
 
 Speed: :func:`kalman_filter` validates the whole sequence once and then runs the unchecked
-arithmetic of :mod:`pgm_wm.gaussian` in its time loop: the observation is whitened once
-(``_whiten``), each update conditions on the ``m`` whitened components one after the other
-(``_condition_whitened``, no matrix inverse), and :math:`F\Sigma F^\top` is one small GEMM
-(``_sandwich_operator``). Covariances that are the same for every sequence of the batch (no
-mask, unbatched parameters) are computed and stored once.
+arithmetic of :mod:`pgm_wm.gaussian`: the observation is whitened once (``_whiten``); each
+update conditions on the ``m`` whitened components one after the other (no matrix inverse);
+:math:`F\Sigma F^\top` is one small GEMM (``_sandwich_operator``). Because the covariances
+(the Riccati recursion) do not depend on the observed values, the filter runs them in a first
+pass (``_update_cov``, ``_predict_cov``) and the means in a second pass (``_update_mean``,
+``_predict_mean``): a handful of batched GEMMs per step. Covariances that are the same for
+every sequence of the batch (no mask, unbatched parameters) are computed and stored once.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -37,13 +40,15 @@ from torch import Tensor
 
 from ._checks import check_last_dims, check_mask, check_same_batch, check_spd, check_tensor
 from .gaussian import (
-    _LOG_2PI,
     Gaussian,
-    _condition_whitened,
+    _LOG_2PI,
     _predict_core,
+    _predict_cov,
+    _predict_mean,
     _sandwich_operator,
     _sym,
-    _whiten,
+    _update_cov,
+    _update_mean,
     condition_with_evidence,
 )
 
@@ -218,59 +223,92 @@ def kalman_filter(
         # zero the ignored entries so that NaNs there cannot reach values or gradients
         y = torch.where(mask[..., None], y, torch.zeros((), dtype=y.dtype))
 
-    # Everything that does not change over time is prepared once: the whitened observation
-    # model (R = L Lᵀ, H̃ = L⁻¹H, ỹ_t = L⁻¹y_t), the single-GEMM operator for F Σ Fᵀ, the
-    # per-step 0/1 weights and the per-step slices.
-    chol_r, Hw, logdet_r, info_r = _whiten(H, R)
-    yw = torch.linalg.solve_triangular(chol_r.unsqueeze(-3), y.unsqueeze(-1), upper=False)
-    yw_steps = yw.squeeze(-1).movedim(-2, 0).movedim(-1, 1).unbind(0)   # T × (m, ...)
     w_steps = None if mask is None else mask.to(y.dtype).movedim(-1, 0).unbind(0)
-    u_steps = None if offsets is None else offsets.movedim(-2, 0).unbind(0)
-    op = _sandwich_operator(F)
-    const = logdet_r + m * _LOG_2PI   # per observed step
+    op = _sandwich_operator(F)   # F Σ Fᵀ as one small GEMM (None: ordinary matmuls)
 
-    mean, cov = init.mean, init.cov
-    f_means, f_covs, p_means, p_covs, qs = [], [], [], [], []
+    # Pass 1, the covariances (the Riccati recursion, Eqs. kf-update and kf-predict for Σ).
+    # They do not depend on the observed values, only on the parameters and the mask, so they
+    # run first; when neither is batched, one covariance sequence serves the whole batch.
+    cov = init.cov
+    p_covs, f_covs, chols, gains, infos = [], [], [], [], []
     for t in range(T):
-        p_means.append(mean)
         p_covs.append(cov)
-        w = None if w_steps is None else w_steps[t]
-        mean, cov, q = _condition_whitened(mean, cov, Hw, yw_steps[t].unbind(0), w)
-        qs.append(q)
-        f_means.append(mean)
+        cov, chol, Kt, info = _update_cov(cov, H, R, None if w_steps is None else w_steps[t])
         f_covs.append(cov)
-        mean, cov = _predict_core(mean, cov, F, Q, None if u_steps is None else u_steps[t], op)
-
-    q_all = _stack(qs, 0)
-    if mask is None:
-        log_likelihoods = -0.5 * (q_all + const.unsqueeze(-1))
-    else:
-        log_likelihoods = -0.5 * (q_all + const.unsqueeze(-1) * mask.to(q_all.dtype))
-    # q is NaN/inf exactly where some innovation variance s_j was not positive
-    if bool((info_r != 0).any()) or not bool(torch.isfinite(q_all).all()):
+        chols.append(chol)
+        gains.append(Kt)
+        infos.append(info)
+        cov = _predict_cov(cov, F, Q, op)
+    if bool((_stack(infos, 0) != 0).any()):
         raise ValueError("R: an innovation covariance H Σ Hᵀ + R was not positive definite")
 
+    # Pass 2, the means: linear in the data. The batch is flattened to N rows and time is put
+    # first, so that each step is two or three GEMMs on contiguous (N, ·) matrices.
+    N = math.prod(batch)
+
+    def flat(x: Tensor, k: int) -> Tensor:
+        """(*b, *event) with k event dims -> (N, *event); unbatched x is returned as is."""
+        if x.ndim == k:
+            return x
+        event = x.shape[x.ndim - k:]
+        return x.expand(*batch, *event).reshape(N, *event)
+
+    y_tm = flat(y, 2).transpose(0, 1).contiguous() if y.ndim > 2 else y.unsqueeze(1)   # (T, N, m)
+    u_tm = None
+    if offsets is not None:
+        u_tm = flat(offsets, 2).transpose(0, 1) if offsets.ndim > 2 else offsets.unsqueeze(1)
+    Fm, Hm = flat(F, 2), flat(H, 2)
+    mean = init.mean.expand(*batch, n).reshape(N, n)
+    means, innovations = [], []   # means: prior, posterior, prior, ... (2T + 1 entries)
+    for t in range(T):
+        means.append(mean)
+        Kt = gains[t]
+        mean, innov = _update_mean(mean, Hm, y_tm[t], Kt if Kt.ndim == 2 else flat(Kt, 2))
+        means.append(mean)
+        innovations.append(innov)
+        mean = _predict_mean(mean, Fm, None if u_tm is None else u_tm[t])
+    means.append(mean)
+
+    # Eq. (kf-loglik): log p(y_t | y_{1:t-1}) = log N(ε_t | 0, S_t) for all steps at once.
+    innov_tm = torch.stack(innovations, 0)                 # (T, N, m)
+    L = _stack(chols, 2, time_dim=0)                        # (T, *bc, m, m)
+    logdet = 2.0 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)   # (T, *bc)
+    if L.ndim == 3:   # one factor per step serves the whole batch: N right-hand sides per solve
+        sol = torch.linalg.solve_triangular(L, innov_tm.transpose(-1, -2), upper=False)
+        quad = sol.square().sum(-2)                          # (T, N)
+        logdet = logdet.unsqueeze(-1)
+    else:
+        Lf = L.expand(T, *batch, m, m).reshape(T, N, m, m)
+        sol = torch.linalg.solve_triangular(Lf, innov_tm.unsqueeze(-1), upper=False)
+        quad = sol.squeeze(-1).square().sum(-1)
+        logdet = logdet.expand(T, *batch).reshape(T, N)
+    log_likelihoods = (-0.5 * (quad + logdet + m * _LOG_2PI)).T.reshape(*batch, T)
+    if mask is not None:
+        log_likelihoods = log_likelihoods * mask.to(log_likelihoods.dtype)
+
+    stacked = torch.stack(means, 0).reshape(2 * T + 1, *batch, n).movedim(0, -2)   # (*batch, 2T+1, n)
     return KalmanFilterResult(
-        filtered=_stack_gaussian(f_means, f_covs),
-        predicted=_stack_gaussian(p_means, p_covs),
-        next_prior=Gaussian(mean, cov),
+        filtered=_stack_gaussian(stacked[..., 1::2, :], f_covs),
+        predicted=_stack_gaussian(stacked[..., 0:-1:2, :], p_covs),
+        next_prior=Gaussian(stacked[..., -1, :], cov),
         log_likelihoods=log_likelihoods,
     )
 
 
-def _stack(xs: list[Tensor], k: int) -> Tensor:
-    """Stack per-step tensors with ``k`` event dims along a new time axis at ``-1 - k``."""
+def _stack(xs: list[Tensor], k: int, time_dim: int | None = None) -> Tensor:
+    """Stack per-step tensors (broadcast to a common shape) with ``k`` event dims along a new
+    time axis at ``-1 - k`` (or at ``time_dim``)."""
     shape = torch.broadcast_shapes(*(x.shape for x in xs))
-    return torch.stack([x.expand(shape) for x in xs], dim=-1 - k)
+    return torch.stack([x.expand(shape) for x in xs], dim=-1 - k if time_dim is None else time_dim)
 
 
-def _stack_gaussian(means: list[Tensor], covs: list[Tensor]) -> Gaussian:
-    """Stack per-step beliefs into mean ``(..., T, n)``, cov ``(..., T, n, n)``.
+def _stack_gaussian(mean: Tensor, covs: list[Tensor]) -> Gaussian:
+    """Beliefs with mean ``(..., T, n)`` and per-step covariances stacked to ``(..., T, n, n)``.
 
     Covariances that are shared across the batch (all-observed sequences with unbatched
     parameters) are stored once and returned as a broadcast view, not copied per sequence.
     """
-    mean, cov = _stack(means, 1), _stack(covs, 2)
+    cov = _stack(covs, 2)
     batch = torch.broadcast_shapes(mean.shape[:-2], cov.shape[:-3])
     n, T = mean.shape[-1], mean.shape[-2]
     return Gaussian(mean.expand(*batch, T, n), cov.expand(*batch, T, n, n))

@@ -549,11 +549,12 @@ def _prepare(obs: Tensor, actions: Tensor, mask: Tensor | None, multiple: int,
                      pad_to_windows(observed, multiple), pad_to_windows(present, multiple), mask, T)
 
 
-def _finish(fast: AcRKN, out: FilterOutput, obs: Tensor, p: _Prepared) -> tuple[FilterOutput, Tensor, Tensor]:
-    """Cut the padding and decode the predicted beliefs."""
+def _finish(fast: AcRKN, out: FilterOutput, obs: Tensor, p: _Prepared, min_var: float
+            ) -> tuple[FilterOutput, Tensor, Tensor]:
+    """Cut the padding and decode the predicted beliefs; add the variance floor ``min_var``."""
     out = _map_output(out, lambda x: x[:, : p.T])
     mean, var = fast.decode_predictions(out, obs, p.mask)
-    return out, mean, var
+    return out, mean, var + min_var if min_var else var
 
 
 # ----------------------------------------------------------------------------- the 2-level model
@@ -587,6 +588,9 @@ class MTS3(nn.Module):
         task_matrix: :math:`C` of Eq. (mts3-fast-predict), a :class:`BlockMatrix`.
         detach_fast: cut the gradient of the fast belief between windows (default True).
         parallel_windows: see :func:`run_fast_level` (same values and gradients, faster training).
+        min_var: a floor added to the predictive variance (``0`` = none; the builders use
+            ``1e-4`` in normalized units), which keeps the NLL bounded when the decoder's variance
+            head collapses early in training.
 
     ``forward(obs, actions, mask) -> (mean, var)`` follows the world-model interface of
     :mod:`pgm_wm.baselines` (index ``t`` predicts :math:`o_{t+1}`); :meth:`run` returns all beliefs.
@@ -594,9 +598,12 @@ class MTS3(nn.Module):
     """
 
     def __init__(self, fast: AcRKN, slow: TaskSSM, task_matrix: BlockMatrix, detach_fast: bool = True,
-                 parallel_windows: bool = True) -> None:
+                 parallel_windows: bool = True, min_var: float = 0.0) -> None:
         super().__init__()
         _check_fast(fast)
+        if min_var < 0:
+            raise ValueError(f"min_var: must be >= 0, got {min_var}")
+        self.min_var = float(min_var)
         if not isinstance(slow, TaskSSM) or slow.above_matrix is not None:
             raise ValueError("slow: expected an unconditioned TaskSSM (the top level)")
         m = fast.latent_obs_dim
@@ -630,7 +637,7 @@ class MTS3(nn.Module):
         # fast level: window k is conditioned on the task PRIOR of window k (Eq. mts3-fast-predict)
         out = run_fast_level(self.fast, p.obs, p.actions, p.observed, self.task_matrix.cause(task_prior), H,
                              self.detach_fast, self.parallel_windows)
-        out, mean, var = _finish(self.fast, out, obs, p)
+        out, mean, var = _finish(self.fast, out, obs, p, self.min_var)
         return MTS3Output(mean, var, out, task_prior, task_post,
                           None if alpha is None else alpha[0], None if alpha is None else alpha[1])
 
@@ -662,13 +669,17 @@ class HierarchicalMTS3(nn.Module):
     :math:`i+1` (``levels[i].above_matrix``; the top level is unconditioned); at the end of each of
     its windows it is updated, bottom-up, with its window's abstract observations. The fast level
     runs in windows of :math:`H_1` steps conditioned on the prior of ``levels[0]`` through
-    ``task_matrix``. With no task level this is the ac-RKN.
+    ``task_matrix``. With no task level this is the ac-RKN. ``detach_fast``, ``parallel_windows``
+    and ``min_var`` as in :class:`MTS3`.
     """
 
     def __init__(self, fast: AcRKN, levels: Sequence[TaskSSM], task_matrix: BlockMatrix | None = None,
-                 detach_fast: bool = True, parallel_windows: bool = True) -> None:
+                 detach_fast: bool = True, parallel_windows: bool = True, min_var: float = 0.0) -> None:
         super().__init__()
         _check_fast(fast)
+        if min_var < 0:
+            raise ValueError(f"min_var: must be >= 0, got {min_var}")
+        self.min_var = float(min_var)
         levels = list(levels)
         m = fast.latent_obs_dim
         for i, lev in enumerate(levels):
@@ -701,7 +712,7 @@ class HierarchicalMTS3(nn.Module):
             zero = obs.new_zeros(obs.shape[0], 1, m2)
             none = FactorizedBelief(zero, zero[..., : m2 // 2], zero[..., : m2 // 2], zero[..., : m2 // 2])
             out = run_fast_level(self.fast, p.obs, p.actions, p.observed, none, p.T)
-            out, mean, var = _finish(self.fast, out, obs, p)
+            out, mean, var = _finish(self.fast, out, obs, p, self.min_var)
             return HierarchicalOutput(mean, var, out, [], [])
         p = _prepare(obs, actions, mask, self.windows[-1], self.obs_dim, action_dim)
         B, Tp = obs.shape[0], p.obs.shape[1]
@@ -733,7 +744,7 @@ class HierarchicalMTS3(nn.Module):
         task_priors = [FactorizedBelief.stack(x) for x in priors]
         out = run_fast_level(self.fast, p.obs, p.actions, p.observed, self.task_matrix.cause(task_priors[0]),
                              self.windows[0], self.detach_fast, self.parallel_windows)
-        out, mean, var = _finish(self.fast, out, obs, p)
+        out, mean, var = _finish(self.fast, out, obs, p, self.min_var)
         return HierarchicalOutput(mean, var, out, task_priors, [FactorizedBelief.stack(x) for x in posts])
 
     def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -750,12 +761,15 @@ def window_imputation_mask(
     context_windows: int = 1,
     generator: torch.Generator | None = None,
     device: torch.device | str | None = None,
+    open_loop_prob: float = 0.0,
 ) -> Tensor:
     """Observation mask ``(B, T)`` (True = observed) for imputation at both time scales.
 
     Every step is kept with probability ``step_keep_prob`` and, independently, every whole window
     of ``window`` steps is dropped with probability ``window_drop_prob``; the first
-    ``context_windows`` windows are always fully observed. Resample it for every batch.
+    ``context_windows`` windows are always fully observed. With probability ``open_loop_prob`` a
+    sequence instead hides *everything* after its context windows (pure open-loop prediction, as
+    at evaluation time). Resample it for every batch.
     """
     if len(shape) != 2 or any(int(s) <= 0 for s in shape):
         raise ValueError(f"shape: expected (B, T) with positive sizes, got {tuple(shape)}")
@@ -765,12 +779,16 @@ def window_imputation_mask(
         raise ValueError(f"step_keep_prob: must be in [0, 1], got {step_keep_prob}")
     if not 0.0 <= window_drop_prob <= 1.0:
         raise ValueError(f"window_drop_prob: must be in [0, 1], got {window_drop_prob}")
+    if not 0.0 <= open_loop_prob <= 1.0:
+        raise ValueError(f"open_loop_prob: must be in [0, 1], got {open_loop_prob}")
     if context_windows < 0:
         raise ValueError(f"context_windows: must be >= 0, got {context_windows}")
     B, T = int(shape[0]), int(shape[1])
     K = -(-T // window)
     steps = torch.rand(B, T, generator=generator) < step_keep_prob
     windows = torch.rand(B, K, generator=generator) >= window_drop_prob
+    open_loop = torch.rand(B, 1, generator=generator) < open_loop_prob
+    windows = windows & ~open_loop
     mask = steps & windows.repeat_interleave(window, dim=1)[:, :T]
     mask[:, : min(context_windows * window, T)] = True
     return mask.to(device) if device is not None else mask
@@ -783,11 +801,13 @@ def window_imputation_loss_fn(
     max_window_drop: float = 0.75,
     context_windows: int = 1,
     loss: str = "nll",
+    open_loop_prob: float = 0.0,
 ) -> Callable[[tuple[Tensor, ...], torch.Generator], Tensor]:
     """A ``loss_fn`` for :func:`pgm_wm.training.fit` on batches ``(obs, actions)``: per batch it
     draws a window-drop probability uniformly in ``[0, max_window_drop]``, a fresh
-    :func:`window_imputation_mask`, and returns :func:`pgm_wm.training.prediction_loss` (all
-    next-step targets count, observed or not). Works for any world model, not only the MTS3."""
+    :func:`window_imputation_mask` (with ``open_loop_prob``), and returns
+    :func:`pgm_wm.training.prediction_loss` (all next-step targets count, observed or not).
+    Works for any world model with the interface ``model(obs, actions, mask)``."""
     if not 0.0 <= max_window_drop <= 1.0:
         raise ValueError(f"max_window_drop: must be in [0, 1], got {max_window_drop}")
 
@@ -795,7 +815,7 @@ def window_imputation_loss_fn(
         obs, actions = batch[0], batch[1]
         p = float(torch.rand((), generator=gen)) * max_window_drop
         mask = window_imputation_mask(obs.shape[:2], window, step_keep_prob, p, context_windows, gen,
-                                      device=obs.device)
+                                      device=obs.device, open_loop_prob=open_loop_prob)
         return prediction_loss(model, obs, actions, mask, None, loss)
 
     return loss_fn
@@ -826,22 +846,23 @@ def build_fast_acrkn(obs_dim: int, action_dim: int, latent_obs_dim: int, hidden:
 
 def build_mts3(obs_dim: int, action_dim: int, latent_obs_dim: int, window: int, hidden: Sequence[int] = (32,),
                bandwidth: int = 0, use_actions: bool = True, decoupled: bool = False,
-               detach_fast: bool = True) -> MTS3:
+               detach_fast: bool = True, min_var: float = 1e-4) -> MTS3:
     """A small 2-level :class:`MTS3` with the defaults documented in :func:`build_fast_acrkn` and
     :class:`TaskSSM`. ``decoupled=True`` gives the diagonal-covariance ("no memory half") ablation,
     ``use_actions=False`` the one without action abstraction."""
     m = latent_obs_dim
     fast = build_fast_acrkn(obs_dim, action_dim, m, hidden, bandwidth, decoupled=decoupled)
     slow = TaskSSM(obs_dim, action_dim, m, window, hidden, bandwidth, use_actions, decoupled=decoupled)
-    return MTS3(fast, slow, BlockMatrix(m, bandwidth, decoupled=decoupled), detach_fast)
+    return MTS3(fast, slow, BlockMatrix(m, bandwidth, decoupled=decoupled), detach_fast, min_var=min_var)
 
 
 def build_hierarchical_mts3(obs_dim: int, action_dim: int, latent_obs_dim: int, windows: Sequence[int],
-                            hidden: Sequence[int] = (32,), bandwidth: int = 0, detach_fast: bool = True) -> HierarchicalMTS3:
+                            hidden: Sequence[int] = (32,), bandwidth: int = 0, detach_fast: bool = True,
+                            min_var: float = 1e-4) -> HierarchicalMTS3:
     """An N-level :class:`HierarchicalMTS3` with ``len(windows)`` task levels (N = that + 1)."""
     m = latent_obs_dim
     fast = build_fast_acrkn(obs_dim, action_dim, m, hidden, bandwidth)
     n = len(windows)
     levels = [TaskSSM(obs_dim, action_dim, m, H, hidden, bandwidth, conditioned=i < n - 1)
               for i, H in enumerate(windows)]
-    return HierarchicalMTS3(fast, levels, BlockMatrix(m, bandwidth) if n else None, detach_fast)
+    return HierarchicalMTS3(fast, levels, BlockMatrix(m, bandwidth) if n else None, detach_fast, min_var=min_var)

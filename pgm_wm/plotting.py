@@ -120,3 +120,255 @@ def plot_gaussian_density(
     g = to_numpy(grid)
     dens = np.exp(-0.5 * (g - mean) ** 2 / var) / np.sqrt(2 * np.pi * var)
     ax.plot(g, dens, label=label, **kwargs)
+
+
+def plot_rollout(
+    axes: Any,
+    t: Any,
+    truth: Any,
+    preds: dict[str, tuple[Any, Any | None]],
+    context_end: float | None = None,
+    dim_labels: Sequence[str] | None = None,
+    n_std: float = 2.0,
+) -> None:
+    """Open-loop rollouts against the ground truth, one axis per output dimension (Chapter 4).
+
+    Args:
+        axes: a sequence of ``d`` matplotlib axes. t: ``(T,)`` time stamps. truth: ``(T, d)``.
+        preds: ``{name: (mean (T, d), var (T, d) or None)}``; a variance adds a ``± n_std`` band.
+        context_end: where the observed context ends (drawn as a dashed vertical line).
+    """
+    t, truth = to_numpy(t), to_numpy(truth)
+    if truth.ndim != 2 or truth.shape[0] != t.shape[0]:
+        raise ValueError(f"truth: expected shape ({t.shape[0]}, d), got {truth.shape}")
+    d = truth.shape[1]
+    if len(axes) != d:
+        raise ValueError(f"axes: need {d} axes, got {len(axes)}")
+    for j, ax in enumerate(axes):
+        ax.plot(t, truth[:, j], color="k", lw=1.5, label="ground truth")
+        for name, (mean, var) in preds.items():
+            mean = to_numpy(mean)
+            if mean.shape != truth.shape:
+                raise ValueError(f"preds: {name!r} has shape {mean.shape}, truth has {truth.shape}")
+            if var is None:
+                ax.plot(t, mean[:, j], lw=1.0, label=name)
+            else:
+                plot_belief(ax, t, mean[:, j], to_numpy(var)[:, j], label=name, n_std=n_std)
+        if context_end is not None:
+            ax.axvline(context_end, color="gray", ls="--", lw=1)
+        if dim_labels is not None:
+            ax.set_ylabel(dim_labels[j])
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8, ncol=2)
+
+
+# ----------------------------------------------------------------------------- Chapter 3 helpers
+__all__ += ["shade_missing", "plot_image_strip"]
+
+
+def shade_missing(ax: Any, t: Any, valid: Any, color: str = "0.85", label: str | None = "missing frame") -> None:
+    """Shade the time spans where ``valid`` (``(T,)`` bool) is False; each step covers ``t ± Δ/2``."""
+    t, valid = to_numpy(t).astype(float), to_numpy(valid).astype(bool)
+    if t.shape != valid.shape or t.ndim != 1:
+        raise ValueError(f"valid: expected the shape of t {t.shape}, got {valid.shape}")
+    half = 0.5 * (float(np.median(np.diff(t))) if t.size > 1 else 1.0)
+    first = True
+    for i in np.flatnonzero(~valid):
+        ax.axvspan(t[i] - half, t[i] + half, color=color, lw=0, zorder=0,
+                   label=label if first and label else None)
+        first = False
+
+
+def plot_image_strip(ax: Any, frames: Any, image_shape: Sequence[int], titles: Sequence[str] | None = None,
+                     gap: int = 1) -> None:
+    """Show flattened grayscale frames ``(n, H*W)`` side by side on one axis (values in [0, 1])."""
+    frames = to_numpy(frames)
+    H, W = int(image_shape[0]), int(image_shape[1])
+    if frames.ndim != 2 or frames.shape[1] != H * W:
+        raise ValueError(f"frames: expected shape (n, {H * W}), got {frames.shape}")
+    n = frames.shape[0]
+    canvas = np.ones((H, n * (W + gap) - gap))
+    for i in range(n):
+        canvas[:, i * (W + gap): i * (W + gap) + W] = frames[i].reshape(H, W)
+    ax.imshow(canvas, cmap="gray", vmin=0.0, vmax=1.0)
+    ax.set_yticks([])
+    if titles is not None:
+        if len(titles) != n:
+            raise ValueError(f"titles: need {n} titles, got {len(titles)}")
+        ax.set_xticks([i * (W + gap) + W / 2 - 0.5 for i in range(n)])
+        ax.set_xticklabels(titles, fontsize=7)
+    else:
+        ax.set_xticks([])
+
+
+# ----------------------------------------------------------------------------- Chapter 6 helpers
+__all__ += ["mark_windows"]
+
+
+def mark_windows(ax: Any, start: float, stop: float, width: float, label: str | None = "window boundary",
+                 **kwargs: Any) -> None:
+    """Draw thin vertical lines at ``start, start + width, ...`` up to ``stop`` (e.g. the boundaries
+    of the slow time scale's windows, where the slow level reconfigures the fast one)."""
+    if width <= 0:
+        raise ValueError(f"width: must be positive, got {width}")
+    style = {"color": "tab:purple", "ls": ":", "lw": 0.8, "alpha": 0.7, **kwargs}
+    for i, x in enumerate(np.arange(start, stop + 1e-9 * width, width)):
+        ax.axvline(x, label=label if i == 0 else None, **style)
+
+
+def plot_graphical_model(
+    ax: Any,
+    nodes: dict[str, tuple[float, float, str, str]],
+    edges: Sequence[tuple[str, str]],
+    title: str = "",
+    radius: float = 0.32,
+) -> None:
+    """Draw a small directed graphical model (Chapter 4).
+
+    Args:
+        nodes: ``{name: (x, y, latex_label, kind)}`` with ``kind`` one of ``"latent"`` (white),
+            ``"observed"`` (grey), ``"action"`` (green, a known input).
+        edges: ``(from, to)`` pairs, drawn as arrows between the node circles.
+    """
+    from matplotlib.patches import Circle, FancyArrowPatch
+
+    colors = {"latent": "white", "observed": "#d0d0d0", "action": "#b8e6b8"}
+    for name, (x, y, label, kind) in nodes.items():
+        if kind not in colors:
+            raise ValueError(f"nodes: unknown kind {kind!r} for node {name!r}")
+        ax.add_patch(Circle((x, y), radius, facecolor=colors[kind], edgecolor="k", lw=1.2, zorder=2))
+        ax.text(x, y, label, ha="center", va="center", fontsize=12, zorder=3)
+    for a, b in edges:
+        if a not in nodes or b not in nodes:
+            raise ValueError(f"edges: unknown node in edge ({a!r}, {b!r})")
+        (x0, y0), (x1, y1) = nodes[a][:2], nodes[b][:2]
+        d = float(np.hypot(x1 - x0, y1 - y0))
+        ux, uy = (x1 - x0) / d, (y1 - y0) / d
+        ax.add_patch(FancyArrowPatch((x0 + radius * ux, y0 + radius * uy), (x1 - radius * ux, y1 - radius * uy),
+                                     arrowstyle="-|>", mutation_scale=12, lw=1.2, color="k", zorder=1))
+    xs = [v[0] for v in nodes.values()]
+    ys = [v[1] for v in nodes.values()]
+    ax.set_xlim(min(xs) - 2 * radius, max(xs) + 2 * radius)
+    ax.set_ylim(min(ys) - 2 * radius, max(ys) + 2 * radius)
+    ax.set_aspect("equal")
+    ax.axis("off")
+    if title:
+        ax.set_title(title)
+
+
+# ----------------------------------------------------------------------------- Chapter 5 helpers
+__all__ += ["plot_graphical_model", "plot_latent_scatter", "plot_task_over_time"]
+
+
+def plot_graphical_model(
+    ax: Any,
+    nodes: dict[str, tuple[float, float, str, str]],
+    edges: Sequence[tuple[str, str]],
+    radius: float = 0.32,
+    plates: Sequence[tuple[float, float, float, float, str]] = (),
+) -> None:
+    """Draw a small directed graphical model (Bayesian network) with matplotlib.
+
+    Args:
+        nodes: name -> ``(x, y, tex_label, kind)`` with ``kind`` ``"latent"`` (white circle),
+            ``"observed"`` (shaded circle) or ``"known"`` (small shaded square, e.g. an action).
+        edges: ``(parent, child)`` pairs, drawn as arrows between the node borders.
+        plates: ``(x0, y0, width, height, label)`` rectangles (e.g. around a context set).
+    """
+    from matplotlib.patches import Circle, FancyArrowPatch, Rectangle
+
+    for x0, y0, w, h, label in plates:
+        ax.add_patch(Rectangle((x0, y0), w, h, fill=False, lw=1, ls="--", ec="0.4"))
+        ax.text(x0 + w - 0.05, y0 + 0.05, label, ha="right", va="bottom", fontsize=9, color="0.3")
+    for name, (x, y, label, kind) in nodes.items():
+        if kind not in ("latent", "observed", "known"):
+            raise ValueError(f"nodes: kind of {name!r} must be latent/observed/known, got {kind!r}")
+        if kind == "known":
+            s = 0.75 * radius
+            ax.add_patch(Rectangle((x - s, y - s), 2 * s, 2 * s, fc="0.8", ec="k", lw=1.2, zorder=2))
+        else:
+            ax.add_patch(Circle((x, y), radius, fc="0.8" if kind == "observed" else "white", ec="k",
+                                lw=1.2, zorder=2))
+        ax.text(x, y, label, ha="center", va="center", fontsize=11, zorder=3)
+    for a, b in edges:
+        if a not in nodes or b not in nodes:
+            raise ValueError(f"edges: unknown node in edge ({a!r}, {b!r})")
+        (xa, ya), (xb, yb) = nodes[a][:2], nodes[b][:2]
+        d = np.hypot(xb - xa, yb - ya)
+        ua, ub = radius / d, 1 - radius / d
+        ax.add_patch(FancyArrowPatch((xa + ua * (xb - xa), ya + ua * (yb - ya)),
+                                     (xa + ub * (xb - xa), ya + ub * (yb - ya)),
+                                     arrowstyle="-|>", mutation_scale=12, lw=1.2, color="k", zorder=1))
+    xs = [v[0] for v in nodes.values()]
+    ys = [v[1] for v in nodes.values()]
+    ax.set_xlim(min(xs) - 2 * radius, max(xs) + 2 * radius)
+    ax.set_ylim(min(ys) - 2 * radius, max(ys) + 2 * radius)
+    ax.set_aspect("equal")
+    ax.axis("off")
+
+
+def plot_latent_scatter(ax: Any, xy: Any, values: Any, label: str = "", cmap: str = "viridis",
+                        markers: Any = None, **kwargs: Any) -> Any:
+    """Scatter a 2-D embedding ``xy: (n, 2)`` coloured by ``values: (n,)`` and add a colorbar.
+
+    ``markers`` (optional ``(n,)`` array of group names) draws each group with its own marker
+    (``o``, ``^``, ``s``, ...) on a shared colour scale. Returns the colorbar.
+    """
+    xy, values = to_numpy(xy), to_numpy(values)
+    if xy.ndim != 2 or xy.shape[1] != 2 or values.shape != (xy.shape[0],):
+        raise ValueError(f"values: expected xy (n, 2) and values (n,), got {xy.shape} and {values.shape}")
+    vmin, vmax = float(values.min()), float(values.max())
+    groups = [None] if markers is None else list(dict.fromkeys(np.asarray(markers).tolist()))
+    shapes = ["o", "^", "s", "D", "v", "P"]
+    sc = None
+    for i, g in enumerate(groups):
+        sel = np.ones(len(values), bool) if g is None else np.asarray(markers) == g
+        sc = ax.scatter(xy[sel, 0], xy[sel, 1], c=values[sel], cmap=cmap, vmin=vmin, vmax=vmax,
+                        marker=shapes[i % len(shapes)], label=g, **{"s": 14, "alpha": 0.8, **kwargs})
+    cb = ax.figure.colorbar(sc, ax=ax)
+    cb.set_label(label)
+    if markers is not None:
+        ax.legend(fontsize=8)
+    return cb
+
+
+def plot_task_over_time(
+    axes: Sequence[Any],
+    t_windows: Any,
+    latent: Any,
+    t: Any,
+    truth: Any,
+    latent_std: Any = None,
+    latent_label: str = "task latent",
+    truth_label: str = "ground truth",
+) -> None:
+    """A latent task summary per window (top) against the ground-truth hidden parameter (bottom).
+
+    Args:
+        axes: two matplotlib axes. t_windows: ``(J,)`` window start times; latent: ``(J,)`` one value
+            per window, drawn as a step held over the window; latent_std: optional ``(J,)`` band.
+        t: ``(T,)`` time stamps; truth: ``(T,)`` the true parameter. Every change of ``truth`` is
+            marked by a dotted vertical line in both panels.
+    """
+    tw, lat, t, truth = to_numpy(t_windows), to_numpy(latent), to_numpy(t), to_numpy(truth)
+    if lat.shape != tw.shape or truth.shape != t.shape:
+        raise ValueError(f"latent: expected shapes latent {tw.shape} and truth {t.shape}, got {lat.shape}, {truth.shape}")
+    if len(axes) != 2:
+        raise ValueError(f"axes: need 2 axes, got {len(axes)}")
+    step = float(tw[1] - tw[0]) if tw.size > 1 else 1.0
+    edges = np.append(tw, tw[-1] + step)
+    axes[0].stairs(lat, edges, color="C0", lw=2, label=latent_label)
+    if latent_std is not None:
+        sd = to_numpy(latent_std)
+        axes[0].stairs(lat + 2 * sd, edges, baseline=lat - 2 * sd, fill=True, color="C0", alpha=0.2,
+                       label="±2σ")
+    axes[1].plot(t, truth, color="C3", lw=2, label=truth_label)
+    for s in t[1:][np.diff(truth) != 0]:
+        for ax in axes:
+            ax.axvline(s, color="k", ls=":", lw=1)
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="upper right")
+    axes[0].set_ylabel(latent_label)
+    axes[1].set_ylabel(truth_label)
+    axes[1].set_xlabel("time [s]")

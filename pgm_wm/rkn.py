@@ -120,6 +120,33 @@ class LocallyLinearTransition(nn.Module):
         self.coefficient_net = nn.Linear(2 * m, K) if K > 1 else None
         self.trans_var_raw = nn.Parameter(torch.full((2 * m,), _inv_softplus(trans_var_init)))
 
+    @classmethod
+    def fixed(cls, A: Tensor, trans_var: Tensor, bandwidth: int | None = None) -> "LocallyLinearTransition":
+        """A constant transition with given ``A: (2m, 2m)`` and noise ``trans_var: (2m,)`` (> 0).
+
+        ``num_basis = 1`` and no identity is added, so :meth:`dense_matrix` returns ``A`` (entries
+        outside the band of half-width ``bandwidth`` are dropped; default: the full matrix).
+        The parameters stay trainable; call ``requires_grad_(False)`` to freeze them.
+        Used to compare with a known linear-Gaussian model (Chapter 3's velocity example).
+        """
+        check_tensor("A", A, 2)
+        n = A.shape[-1]
+        if A.ndim != 2 or A.shape[0] != n or n % 2:
+            raise ValueError(f"A: expected one square (2m, 2m) matrix, got shape {tuple(A.shape)}")
+        m = n // 2
+        check_last_dims("trans_var", trans_var, (n,))
+        if trans_var.ndim != 1 or not bool((trans_var > 0).all()):
+            raise ValueError("trans_var: expected a positive vector of shape (2m,)")
+        tr = cls(m, num_basis=1, bandwidth=m - 1 if bandwidth is None else bandwidth, add_identity=False)
+        tr = tr.to(A.dtype)
+        with torch.no_grad():
+            for name, blk in (("basis_11", A[:m, :m]), ("basis_12", A[:m, m:]),
+                              ("basis_21", A[m:, :m]), ("basis_22", A[m:, m:])):
+                getattr(tr, name).copy_(blk.unsqueeze(0))
+            t = trans_var.to(A.dtype)
+            tr.trans_var_raw.copy_(t + torch.log(-torch.expm1(-t)))  # inverse softplus
+        return tr
+
     @property
     def trans_var(self) -> Tensor:
         """Transition noise variances :math:`[q^u; q^l]`: ``(2m,)``, positive."""

@@ -7,43 +7,36 @@ zeroed and flagged. Instead of a Kalman update and predict it runs a gated recur
 the hidden state :math:`h_t` with a Gaussian head into a mean and a variance. Nothing in the cell
 is probabilistic: whatever uncertainty it reports is learned from the loss alone.
 
-:func:`gaussian_nll` is the per-dimension Gaussian negative log-likelihood (Eq. rkn-loss)
-
-.. math:: \ell(y\mid\mu,\sigma^2) = \tfrac12\big[\log 2\pi + \log\sigma^2 + (y-\mu)^2/\sigma^2\big],
-
-averaged over all entries; :func:`fit_filter` minimises it with Adam and keeps the parameters
-of the epoch with the best validation NLL; :func:`evaluate_filter` reports RMSE and NLL.
+:func:`fit_filter` trains any filter ``model(obs, mask) -> (mean, var)`` (the RKN, its
+diagonal-only ablation, these baselines) on the per-dimension Gaussian NLL
+(:func:`pgm_wm.metrics.gaussian_nll`, Eq. metric-nll) with the generic loop
+:func:`pgm_wm.training.fit`, keeping the parameters of the epoch with the best validation NLL;
+:func:`evaluate_filter` reports RMSE and NLL on whole sequences.
 """
 
 from __future__ import annotations
 
-import copy
-import math
-import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Sequence
 
 import torch
 from torch import Tensor, nn
 
 from ._checks import check_last_dims, check_mask, check_tensor
+from .metrics import gaussian_nll, rmse
 from .rkn import elup1, mlp
+from .training import FitHistory, fit
 
 __all__ = [
     "GaussianHead",
     "RecurrentFilter",
     "recurrent_hidden_for_budget",
     "count_parameters",
-    "gaussian_nll",
     "FilterData",
-    "FitHistory",
     "fit_filter",
     "predict_filter",
     "evaluate_filter",
 ]
-
-_LOG_2PI = math.log(2.0 * math.pi)
-
 
 class GaussianHead(nn.Module):
     r"""Decoder of a deterministic hidden state: ``h -> (mean, var)``, ``var = elu(·) + 1``.
@@ -151,14 +144,6 @@ def recurrent_hidden_for_budget(cell_type: str, input_dim: int, budget: int) -> 
     return h
 
 
-def gaussian_nll(mean: Tensor, var: Tensor, target: Tensor) -> Tensor:
-    r"""Mean Gaussian negative log-likelihood per entry, Eq. (rkn-loss); all shapes equal."""
-    if mean.shape != target.shape or var.shape != target.shape:
-        raise ValueError(f"target: shapes differ (mean {tuple(mean.shape)}, var {tuple(var.shape)}, "
-                         f"target {tuple(target.shape)})")
-    return 0.5 * (_LOG_2PI + torch.log(var) + (target - mean) ** 2 / var).mean()
-
-
 @dataclass(frozen=True)
 class FilterData:
     """A filtering data set as tensors: ``obs (n, T, d)``, ``mask (n, T)`` bool, ``targets (n, T, k)``."""
@@ -169,11 +154,19 @@ class FilterData:
 
     def __post_init__(self) -> None:
         check_tensor("obs", self.obs, 3)
-        check_mask("mask", self.mask, tuple(self.obs.shape[:2]))
+        object.__setattr__(self, "mask", check_mask("mask", self.mask, tuple(self.obs.shape[:2])))
         check_tensor("targets", self.targets, 3)
         if tuple(self.targets.shape[:2]) != tuple(self.obs.shape[:2]):
             raise ValueError(f"targets: expected leading shape {tuple(self.obs.shape[:2])}, "
                              f"got {tuple(self.targets.shape)}")
+
+    @classmethod
+    def from_dataset(cls, data: object) -> "FilterData":
+        """From a :class:`pgm_wm.datasets.SequenceData` (uses ``obs``, ``valid``, ``targets``)."""
+        for attr in ("obs", "valid", "targets"):
+            if getattr(data, attr, None) is None:
+                raise ValueError(f"data: needs a tensor attribute {attr!r}")
+        return cls(data.obs, data.valid, data.targets)
 
     def __len__(self) -> int:
         return self.obs.shape[0]
@@ -182,20 +175,9 @@ class FilterData:
         return FilterData(self.obs[index], self.mask[index], self.targets[index])
 
 
-@dataclass
-class FitHistory:
-    """Per-epoch training NLL and validation NLL/RMSE; ``best_epoch`` is the kept one (0-based)."""
-
-    train_nll: list[float] = field(default_factory=list)
-    valid_nll: list[float] = field(default_factory=list)
-    valid_rmse: list[float] = field(default_factory=list)
-    best_epoch: int = -1
-    seconds: float = 0.0
-
-
 @torch.no_grad()
 def predict_filter(model: nn.Module, data: FilterData, batch_size: int = 64) -> tuple[Tensor, Tensor]:
-    """``model(obs, mask)`` over ``data`` in batches without gradients -> ``(mean, var)``."""
+    """``model(obs, mask)`` over ``data`` in batches, in eval mode, without gradients -> ``(mean, var)``."""
     was_training = model.training
     model.eval()
     means, variances = [], []
@@ -208,10 +190,10 @@ def predict_filter(model: nn.Module, data: FilterData, batch_size: int = 64) -> 
 
 
 def evaluate_filter(model: nn.Module, data: FilterData, batch_size: int = 64) -> dict[str, float]:
-    """Root mean squared error and mean Gaussian NLL of ``model(obs, mask)`` on every step."""
+    """RMSE (Eq. metric-rmse) and mean Gaussian NLL (Eq. metric-nll) of ``model(obs, mask)``
+    on every step, observed or not."""
     mean, var = predict_filter(model, data, batch_size)
-    return {"rmse": float(((mean - data.targets) ** 2).mean().sqrt()),
-            "nll": float(gaussian_nll(mean, var, data.targets))}
+    return {"rmse": float(rmse(mean, data.targets)), "nll": float(gaussian_nll(mean, var, data.targets))}
 
 
 def fit_filter(
@@ -226,52 +208,22 @@ def fit_filter(
     progress: bool = False,
     crop: int | None = None,
 ) -> FitHistory:
-    """Train ``model(obs, mask) -> (mean, var)`` by minimising :func:`gaussian_nll` with Adam.
+    """Train ``model(obs, mask) -> (mean, var)`` on the Gaussian NLL of the targets (Eq. metric-nll).
 
-    Each epoch visits the training sequences once in a seeded random order, clipping the
-    gradient norm at ``clip``. After each epoch the validation NLL is computed; at the end the
-    parameters of the best validation epoch are restored (model selection on the validation
-    split, never on the test split). With ``crop``, every batch is a random window of ``crop``
-    consecutive steps (one seeded start per batch), which makes an epoch of a step-by-step
-    filter proportionally cheaper; validation always uses whole sequences.
+    A thin wrapper of :func:`pgm_wm.training.fit` (Adam, gradient-norm clipping at ``clip``,
+    seeded shuffling, random windows of ``crop`` steps if given). After every epoch the NLL on
+    the whole validation sequences is recorded, and at the end the parameters of the best
+    validation epoch are restored (model selection on the validation split, never on test).
     """
-    if epochs <= 0 or batch_size <= 0 or lr <= 0:
-        raise ValueError(f"epochs: epochs, batch_size and lr must be positive, got {epochs}, {batch_size}, {lr}")
     T = train.obs.shape[1]
     if crop is not None and not 0 < crop <= T:
         raise ValueError(f"crop: must be in [1, {T}], got {crop}")
-    gen = torch.Generator().manual_seed(seed)
-    opt = torch.optim.Adam(model.parameters(), lr=lr)
-    hist = FitHistory()
-    best_state, best = None, float("inf")
-    t0 = time.perf_counter()
-    for epoch in range(epochs):
-        model.train()
-        order = torch.randperm(len(train), generator=gen)
-        total, count = 0.0, 0
-        for i in range(0, len(train), batch_size):
-            idx = order[i:i + batch_size].to(train.obs.device)
-            start_t = 0 if crop is None else int(torch.randint(0, T - crop + 1, (1,), generator=gen))
-            win = slice(start_t, T if crop is None else start_t + crop)
-            mean, var = model(train.obs[idx, win], train.mask[idx, win])
-            loss = gaussian_nll(mean, var, train.targets[idx, win])
-            opt.zero_grad()
-            loss.backward()
-            nn.utils.clip_grad_norm_(model.parameters(), clip)
-            opt.step()
-            total += float(loss.detach()) * len(idx)
-            count += len(idx)
-        scores = evaluate_filter(model, valid)
-        hist.train_nll.append(total / count)
-        hist.valid_nll.append(scores["nll"])
-        hist.valid_rmse.append(scores["rmse"])
-        if scores["nll"] < best:
-            best, hist.best_epoch = scores["nll"], epoch
-            best_state = copy.deepcopy(model.state_dict())
-        if progress:
-            print(f"epoch {epoch + 1}/{epochs}: train NLL {total / count:.3f}, "
-                  f"valid NLL {scores['nll']:.3f}, valid RMSE {scores['rmse']:.4f}")
-    if best_state is not None:
-        model.load_state_dict(best_state)
-    hist.seconds = time.perf_counter() - t0
-    return hist
+
+    def loss_fn(batch: tuple[Tensor, ...], gen: torch.Generator) -> Tensor:
+        obs, mask, targets = batch
+        mean, var = model(obs, mask)
+        return gaussian_nll(mean, var, targets)
+
+    return fit(loss_fn, model, (train.obs, train.mask, train.targets), batch_size=batch_size,
+               epochs=epochs, lr=lr, clip_norm=clip, seed=seed, progress=progress, crop_len=crop,
+               valid_fn=lambda: evaluate_filter(model, valid)["nll"], keep_best=True, desc="fit_filter")

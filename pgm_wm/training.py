@@ -11,6 +11,7 @@ r"""Training and evaluation utilities shared by the model chapters (3-6).
   ``t`` predicts :math:`o_{t+1}` (:class:`pgm_wm.acrkn.AcRKN` and :mod:`pgm_wm.baselines`).
 * :func:`multistep_predict` — give a model a context of observations and predict open-loop from
   the actions alone; no observation after the context is passed to the model at all.
+* :func:`multistep_metrics` — RMSE and NLL per prediction horizon over sliding windows.
 * :func:`sliding_windows` — cut long sequences into (overlapping) evaluation windows.
 """
 
@@ -38,6 +39,7 @@ __all__ = [
     "prediction_loss",
     "imputation_loss_fn",
     "multistep_predict",
+    "multistep_metrics",
     "sliding_windows",
 ]
 
@@ -338,3 +340,46 @@ def sliding_windows(x: Tensor, length: int, stride: int) -> Tensor:
     starts = range(0, T - length + 1, stride)
     w = torch.stack([x[:, s:s + length] for s in starts], dim=1)  # (B, n, length, ...)
     return w.reshape(-1, length, *x.shape[2:])
+
+
+def multistep_metrics(
+    model: Callable[..., tuple[Tensor, Tensor]],
+    obs: Tensor,
+    actions: Tensor,
+    context_len: int,
+    horizon: int,
+    stride: int | None = None,
+    obs_mean: Tensor | None = None,
+    obs_std: Tensor | None = None,
+    batch_size: int = 256,
+) -> dict[str, Tensor]:
+    """RMSE and NLL of :func:`multistep_predict` for every horizon ``1..horizon``.
+
+    Sequences ``obs, actions: (B, T, ·)`` are cut into windows of ``context_len + horizon`` steps
+    every ``stride`` steps (default: ``horizon``); each window gives a context and an open-loop
+    stretch. With ``obs_mean``/``obs_std`` (training statistics) predictions and targets are
+    mapped back to original units before scoring (:func:`pgm_wm.metrics.denormalize`).
+
+    Returns ``{"rmse": (horizon,), "nll": (horizon,), "mean": (N, horizon, do), "var": ...,
+    "target": ...}`` with ``N`` the number of windows (predictions in the scored units).
+    """
+    from .metrics import denormalize, denormalize_var
+
+    L = context_len + horizon
+    if (obs_mean is None) != (obs_std is None):
+        raise ValueError("obs_std: give obs_mean and obs_std together")
+    ow = sliding_windows(obs, L, stride or horizon)
+    aw = sliding_windows(actions, L, stride or horizon)
+    means, vars_ = [], []
+    with torch.no_grad():
+        for i in range(0, ow.shape[0], batch_size):
+            mu, var = multistep_predict(model, ow[i:i + batch_size], aw[i:i + batch_size], context_len, horizon)
+            means.append(mu)
+            vars_.append(var)
+    mean, var = torch.cat(means), torch.cat(vars_)
+    target = ow[:, context_len:]
+    if obs_std is not None:
+        mean, var = denormalize(mean, obs_mean, obs_std), denormalize_var(var, obs_std)
+        target = denormalize(target, obs_mean, obs_std)
+    return {"rmse": rmse(mean, target, dim=(0, 2)), "nll": gaussian_nll(mean, var, target, dim=(0, 2)),
+            "mean": mean, "var": var, "target": target}

@@ -13,8 +13,9 @@ python scripts/vendor_assets.py
 
 # --all: rebuild every page from scratch, so every notebook is executed on every build
 #        (execute_notebooks: force only executes the pages Sphinx re-reads).
-# -W --keep-going: any warning (including a notebook that fails to execute) makes the
-#        build fail, after reporting all of them.
+# -W --keep-going: any Sphinx warning (broken reference, unknown citation key, ...) makes
+#        the build fail after all of them are reported. A notebook cell that raises stops
+#        the build at once (execute.raise_on_error in _config.yml).
 status=0
 jupyter-book build . --all -W --keep-going || status=$?
 
@@ -27,4 +28,6 @@ if [ ! -f _build/html/index.html ]; then
     echo "[build_book] FAILED: _build/html/index.html was not produced" >&2
     exit 1
 fi
+# The rendered pages must not fetch scripts, styles or fonts from any server.
+python scripts/check_offline.py _build/html
 echo "[build_book] OK in ${elapsed}s: open _build/html/index.html"

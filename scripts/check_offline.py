@@ -61,7 +61,7 @@ def scan(build_dir: Path) -> list[str]:
     for path in sorted(build_dir.rglob("*.css")):
         text = re.sub(r"/\*.*?\*/", "", path.read_text(encoding="utf-8", errors="replace"),
                       flags=re.S)
-        for url in CSS_URL.findall(text) + CSS_IMPORT.findall(text):
+        for url in sorted(set(CSS_URL.findall(text) + CSS_IMPORT.findall(text))):
             if REMOTE.match(url):
                 problems.append(f"{path.relative_to(build_dir)}: css {url}")
     return problems

@@ -443,3 +443,25 @@ def test_bayesian_encoder_learns_to_downweight_noisy_elements():
     assert r_var[-1].item() > 3 * r_var[0].item()
     metrics = evaluate_set_model(model, valid)
     assert metrics["rmse"] < 0.5 and math.isfinite(metrics["nll"])
+
+
+def test_sampler_from_payload_arm_split():
+    from pgm_wm.datasets import load
+
+    data = load("payload_arm", "valid", action="pd_target")
+    sampler = ContextSetSampler.from_sequence_data(data, "payload", target_mean=1.0, target_std=0.5)
+    assert sampler.features.shape == (data.n_sequences, data.seq_len - 1, 2 * data.obs_dim + data.action_dim)
+    raw = transition_features(data.obs, data.actions)
+    d = data.obs_dim
+    torch.testing.assert_close(sampler.features[..., :d], data.normalize_obs(raw[..., :d]))
+    torch.testing.assert_close(sampler.features[..., -d:], data.normalize_diff(raw[..., -d:]))
+    torch.testing.assert_close(sampler.targets[:, 0], (data.hidden["payload"][:, 0] - 1.0) / 0.5)
+    gen = torch.Generator().manual_seed(0)
+    batch = sampler.sample(3, 5, generator=gen, sizes=torch.tensor([1, 5, 3]))
+    assert batch.sizes.tolist() == [1, 5, 3]
+    with pytest.raises(ValueError, match="sizes"):
+        sampler.sample(2, 5, sizes=torch.tensor([0, 3]))
+    with pytest.raises(ValueError, match="hidden_key"):
+        ContextSetSampler.from_sequence_data(load("payload_arm", "switching"), "payload")
+    with pytest.raises(ValueError, match="hidden_key"):
+        ContextSetSampler.from_sequence_data(data, "mass")

@@ -1,0 +1,475 @@
+"""Tests for pgm_wm.mts3 (and the Transformer baseline of Chapter 6).
+
+Oracles: dense Gaussian algebra (pgm_wm.gaussian.marginalize_linear / condition), sequential
+factorized Kalman updates, the ac-RKN of Chapter 4 (pgm_wm.acrkn.AcRKN), the general RKN filter
+loop, and properties (causality / no look-ahead, parallel == sequential, gradient cuts).
+"""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pgm_wm.aggregation import bayesian_aggregation
+from pgm_wm.baselines import TransformerBaseline, alibi_causal_bias
+from pgm_wm.factorized import FactorizedBelief, factorized_update
+from pgm_wm.gaussian import Gaussian, condition, marginalize_linear
+from pgm_wm.mts3 import (
+    MTS3,
+    BlockMatrix,
+    HierarchicalMTS3,
+    TaskSSM,
+    build_fast_acrkn,
+    build_hierarchical_mts3,
+    build_mts3,
+    diagonal_filter,
+    factorized_linear_cause,
+    run_fast_level,
+    task_predict,
+    time_encoding,
+    to_windows,
+    window_imputation_loss_fn,
+    window_imputation_mask,
+)
+from pgm_wm.rkn import LocallyLinearTransition
+from pgm_wm.training import prediction_loss
+
+torch.set_num_threads(1)
+DT = torch.float64
+DO, DA, M = 3, 2, 4
+
+
+# ----------------------------------------------------------------------------- helpers
+def rand_belief(batch, m, gen, scale=1.0):
+    su = torch.rand(*batch, m, generator=gen, dtype=DT) + 0.5
+    sl = torch.rand(*batch, m, generator=gen, dtype=DT) + 0.5
+    ss = (torch.rand(*batch, m, generator=gen, dtype=DT) - 0.5) * 0.8 * torch.sqrt(su * sl)
+    mean = scale * torch.randn(*batch, 2 * m, generator=gen, dtype=DT)
+    return FactorizedBelief(mean, su, sl, ss)
+
+
+def diag_blocks(m, gen):
+    return tuple(torch.diag(torch.randn(m, generator=gen, dtype=DT)) for _ in range(4))
+
+
+def dense(blocks):
+    b11, b12, b21, b22 = blocks
+    return torch.cat([torch.cat([b11, b12], -1), torch.cat([b21, b22], -1)], -2)
+
+
+def perturb(model, scale=0.1, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in model.parameters():
+            if p.requires_grad:
+                p.add_(scale * torch.randn(p.shape, generator=gen, dtype=p.dtype))
+    return model
+
+
+def data(B, T, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    obs = torch.randn(B, T, DO, generator=gen, dtype=DT)
+    act = torch.randn(B, T, DA, generator=gen, dtype=DT)
+    mask = torch.rand(B, T, generator=gen, dtype=DT) > 0.3
+    return obs, act, mask
+
+
+def mts3(H=4, **kw):
+    with torch.random.fork_rng():
+        torch.manual_seed(1)
+        return perturb(build_mts3(DO, DA, M, H, hidden=(8,), **kw).to(DT))
+
+
+def close(a, b, tol=1e-10):
+    torch.testing.assert_close(a, b, rtol=tol, atol=tol)
+
+
+# ----------------------------------------------------------------------------- slow-scale algebra
+@settings(max_examples=15, deadline=None)
+@given(st.integers(0, 10_000), st.integers(1, 3))
+def test_task_predict_matches_dense_marginalization(seed, m):
+    gen = torch.Generator().manual_seed(seed)
+    post = rand_belief((2,), m, gen)
+    X, Yb = diag_blocks(m, gen), diag_blocks(m, gen)
+    Y = dense(Yb)
+    S = torch.rand(2 * m, generator=gen, dtype=DT) + 0.1
+    a_mean = torch.randn(2, 2 * m, generator=gen, dtype=DT)
+    a_var = torch.rand(2, 2 * m, generator=gen, dtype=DT) + 0.2
+    got = task_predict(post, X, S, Y, a_mean, a_var)
+    alpha = Gaussian(a_mean, torch.diag_embed(a_var))
+    want = marginalize_linear([(dense(X), post.to_dense()), (Y, alpha)], noise_cov=torch.diag(S))
+    close(got.to_dense().mean, want.mean)
+    close(got.to_dense().cov, want.cov)
+    # the Y Σ_α Yᵀ term is really there (the authors' code drops it): without it the answer differs
+    no_term = marginalize_linear([(dense(X), post.to_dense())], noise_cov=torch.diag(S), offset=a_mean @ Y.T)
+    assert (got.to_dense().cov - no_term.cov).abs().max() > 1e-3
+    close(got.to_dense().cov - no_term.cov, Y @ torch.diag_embed(a_var) @ Y.T)
+
+
+def test_task_predict_band_blocks_keep_exact_block_diagonals():
+    gen = torch.Generator().manual_seed(3)
+    m = 4
+    post = rand_belief((3,), m, gen)
+    band = LocallyLinearTransition(m, num_basis=1, bandwidth=1, add_identity=False).to(DT)
+    perturb(band)
+    X = band.blocks(post.mean)
+    S = band.trans_var.detach()
+    Y = torch.randn(2 * m, 2 * m, generator=gen, dtype=DT)
+    a_mean, a_var = torch.randn(3, 2 * m, dtype=DT), torch.rand(3, 2 * m, dtype=DT) + 0.1
+    got = task_predict(post, X, S, Y, a_mean, a_var)
+    want = marginalize_linear([(dense(X), post.to_dense()), (Y, Gaussian(a_mean, torch.diag_embed(a_var)))],
+                              noise_cov=torch.diag(S))
+    proj = FactorizedBelief.from_dense(want)
+    for f in ("mean", "var_upper", "var_lower", "cov_side"):
+        close(getattr(got, f), getattr(proj, f))
+
+
+@settings(max_examples=15, deadline=None)
+@given(st.integers(0, 10_000), st.integers(1, 6))
+def test_task_update_equals_sequential_and_dense_conditioning(seed, n):
+    gen = torch.Generator().manual_seed(seed)
+    m = 3
+    slow = TaskSSM(DO, DA, m, n, hidden=(4,)).to(DT)
+    prior = rand_belief((2,), m, gen)
+    beta = torch.randn(2, n, m, generator=gen, dtype=DT)
+    nu = torch.rand(2, n, m, generator=gen, dtype=DT) + 0.1
+    mask = torch.rand(2, n, generator=gen) > 0.3
+    got = slow.update(prior, beta, nu, mask)
+    for b in range(2):
+        seq = FactorizedBelief(*(getattr(prior, f)[b] for f in ("mean", "var_upper", "var_lower", "cov_side")))
+        order = torch.randperm(n, generator=gen)
+        dense_b = seq.to_dense()
+        H = torch.cat([torch.eye(m, dtype=DT), torch.zeros(m, m, dtype=DT)], -1)
+        for i in order.tolist():
+            if mask[b, i]:
+                seq = factorized_update(seq, beta[b, i], nu[b, i])
+                dense_b = condition(dense_b, H, torch.diag(nu[b, i]), beta[b, i])
+        for f in ("mean", "var_upper", "var_lower", "cov_side"):
+            close(getattr(got, f)[b], getattr(seq, f))
+        close(got.to_dense().cov[b], dense_b.cov)
+        close(got.mean[b], dense_b.mean)
+
+
+def test_abstract_action_is_bayesian_aggregation_with_time_encoding():
+    torch.manual_seed(0)
+    H = 5
+    slow = TaskSSM(DO, DA, M, H, hidden=(8,)).to(DT)
+    acts = torch.randn(2, 3, H, DA, dtype=DT)
+    present = torch.ones(2, 3, H, dtype=torch.bool)
+    present[1, 2, 3:] = False
+    mean, var = slow.encode_actions(acts, present)
+    x = torch.cat([acts, time_encoding(H, acts).expand(2, 3, H, 1)], -1)
+    r, r_var = slow.action_encoder.encode(x)
+    want_mean, want_var = bayesian_aggregation(r, r_var, present, 0.0, 1.0)
+    close(mean, want_mean)
+    close(var, want_var)
+    # padded steps do not matter
+    acts2 = acts.clone()
+    acts2[1, 2, 3:] = 100.0
+    mean2, _ = slow.encode_actions(acts2, present)
+    close(mean2, mean)
+
+
+# ----------------------------------------------------------------------------- fast-scale algebra
+def test_fast_step_with_task_cause_matches_dense():
+    gen = torch.Generator().manual_seed(5)
+    m, B = 3, 2
+    init = rand_belief((B,), m, gen)
+    A = diag_blocks(m, gen)
+    C = diag_blocks(m, gen)
+    q = torch.rand(2 * m, generator=gen, dtype=DT) + 0.05
+    task_belief = rand_belief((B,), m, gen)
+    task = factorized_linear_cause(task_belief, *C)
+    b = torch.randn(B, 1, 2 * m, generator=gen, dtype=DT)
+    w = torch.randn(B, 1, m, generator=gen, dtype=DT)
+    w_var = torch.rand(B, 1, m, generator=gen, dtype=DT) + 0.1
+    mask = torch.tensor([[True], [False]])
+    out = diagonal_filter(init, w, w_var, mask, [torch.diagonal(x) for x in A], q, b, task)
+    H = torch.cat([torch.eye(m, dtype=DT), torch.zeros(m, m, dtype=DT)], -1)
+    for i in range(B):
+        prior = Gaussian(init.mean[i], init.to_dense().cov[i])
+        post = condition(prior, H, torch.diag(w_var[i, 0]), w[i, 0]) if mask[i, 0] else prior
+        l_dense = Gaussian(task_belief.mean[i], task_belief.to_dense().cov[i])
+        nxt = marginalize_linear([(dense(A), post), (dense(C), l_dense)], noise_cov=torch.diag(q), offset=b[i, 0])
+        close(out.posterior.to_dense().mean[i, 0], post.mean)
+        close(out.posterior.to_dense().cov[i, 0], post.cov)
+        close(out.predicted.to_dense().mean[i, 0], nxt.mean)
+        close(out.predicted.to_dense().cov[i, 0], nxt.cov)  # C Σ_l Cᵀ included
+
+
+def test_diagonal_filter_equals_general_rkn_loop():
+    model = mts3()
+    fast = model.fast
+    gen = torch.Generator().manual_seed(2)
+    B, T, m = 3, 9, M
+    init = rand_belief((B,), m, gen)
+    task = rand_belief((B,), m, gen)
+    w = torch.randn(B, T, m, generator=gen, dtype=DT)
+    w_var = torch.rand(B, T, m, generator=gen, dtype=DT) + 0.1
+    mask = torch.rand(B, T, generator=gen) > 0.4
+    b = torch.randn(B, T, 2 * m, generator=gen, dtype=DT)
+    blocks = [torch.diagonal(x) for x in fast.transition.blocks(init.mean)]
+    got = diagonal_filter(init, w, w_var, mask, blocks, fast.transition.trans_var, b, task)
+    means = b + task.mean[:, None]
+    want = fast.rkn.filter(w, w_var, mask, lambda t, post: [FactorizedBelief(
+        means[:, t], task.var_upper, task.var_lower, task.cov_side)], init)
+    for part in ("prior", "posterior", "predicted"):
+        for f in ("mean", "var_upper", "var_lower", "cov_side"):
+            close(getattr(getattr(got, part), f), getattr(getattr(want, part), f))
+
+
+# ----------------------------------------------------------------------------- reductions
+def test_one_level_mts3_is_the_acrkn():
+    torch.manual_seed(0)
+    fast = perturb(build_fast_acrkn(DO, DA, M, (8,)).to(DT))
+    one = HierarchicalMTS3(fast, [])
+    obs, act, mask = data(3, 17)
+    got, want = one(obs, act, mask), fast(obs, act, mask)
+    close(got[0], want[0])
+    close(got[1], want[1])
+
+
+def test_zero_task_matrix_gives_the_acrkn_across_windows():
+    """With C = 0 the slow level has no effect and the fast belief must run on across windows:
+    the prior of the first step of window k is the prior after the last step of window k-1."""
+    model = mts3(H=4)
+    with torch.no_grad():
+        for p in model.task_matrix.parameters():
+            p.zero_()
+    obs, act, mask = data(2, 14)
+    got = model(obs, act, mask)
+    want = model.fast(obs, act, mask)
+    close(got[0], want[0])
+    close(got[1], want[1] + model.min_var)  # the builder adds a 1e-4 variance floor
+
+
+def test_two_level_hierarchical_equals_mts3():
+    model = mts3(H=4)
+    hier = HierarchicalMTS3(model.fast, [model.slow], model.task_matrix)
+    obs, act, mask = data(3, 14)
+    a, b = model.run(obs, act, mask), hier.run(obs, act, mask)
+    close(a.mean, b.mean)
+    close(a.var, b.var)
+    close(a.task_prior.mean, b.task_priors[0].mean)
+    close(a.task_posterior.var_upper, b.task_posteriors[0].var_upper)
+
+
+def test_three_levels_shapes_and_windows():
+    torch.manual_seed(0)
+    model = perturb(build_hierarchical_mts3(DO, DA, M, [3, 6], hidden=(8,)).to(DT))
+    obs, act, mask = data(2, 17)
+    out = model.run(obs, act, mask)
+    assert out.mean.shape == (2, 17, DO)
+    assert out.task_priors[0].mean.shape == (2, 6, 2 * M)  # 18 padded steps / 3
+    assert out.task_priors[1].mean.shape == (2, 3, 2 * M)
+    assert torch.isfinite(out.mean).all() and (out.var > 0).all()
+
+
+# ----------------------------------------------------------------------------- no look-ahead
+@pytest.mark.parametrize("kind", ["mts3", "hier3"])
+def test_no_lookahead_inside_a_window(kind):
+    """Changing observation s changes no prediction before s. In particular the fast scale of window
+    k does not see window k's later observations: it is conditioned on the task PRIOR."""
+    if kind == "mts3":
+        model = mts3(H=5)
+    else:
+        torch.manual_seed(0)
+        model = perturb(build_hierarchical_mts3(DO, DA, M, [5, 10], hidden=(8,)).to(DT))
+    obs, act, _ = data(2, 20)
+    mask = torch.ones(2, 20, dtype=torch.bool)
+    base = model.run(obs, act, mask)
+    for s in (6, 8, 9, 13):
+        obs2 = obs.clone()
+        obs2[:, s] += 3.0
+        out = model.run(obs2, act, mask)
+        close(out.mean[:, :s], base.mean[:, :s])
+        close(out.var[:, :s], base.var[:, :s])
+        assert (out.mean[:, s:] - base.mean[:, s:]).abs().max() > 1e-6
+        if kind == "mts3":
+            k = s // 5
+            close(out.task_prior.mean[:, : k + 1], base.task_prior.mean[:, : k + 1])  # prior of window k
+            assert (out.task_posterior.mean[:, k] - base.task_posterior.mean[:, k]).abs().max() > 1e-6
+
+
+def test_task_prior_uses_only_earlier_windows():
+    model = mts3(H=4)
+    obs, act, mask = data(2, 16)
+    base = model.run(obs, act, mask)
+    obs2 = obs.clone()
+    obs2[:, 8:12] += 2.0  # window 2
+    out = model.run(obs2, act, torch.ones_like(mask))
+    base = model.run(obs, act, torch.ones_like(mask))
+    close(out.task_prior.mean[:, :3], base.task_prior.mean[:, :3])
+    close(out.task_prior.var_upper[:, :3], base.task_prior.var_upper[:, :3])
+    assert (out.task_prior.mean[:, 3] - base.task_prior.mean[:, 3]).abs().max() > 1e-6
+
+
+# ----------------------------------------------------------------------------- windows & gradients
+def test_parallel_windows_equal_sequential_values_and_gradients():
+    a = mts3(H=4)
+    b = copy.deepcopy(a)
+    b.parallel_windows = False
+    obs, act, mask = data(3, 15)
+    ga = prediction_loss(a, obs, act, mask)
+    gb = prediction_loss(b, obs, act, mask)
+    close(ga, gb)
+    ga.backward()
+    gb.backward()
+    for (n, pa), pb in zip(a.named_parameters(), b.parameters()):
+        if pa.grad is not None:
+            close(pa.grad, pb.grad, 1e-9)
+
+
+def test_fast_gradients_are_cut_between_windows_but_flow_through_the_slow_scale():
+    obs, act, mask = data(2, 12)
+    for C_zero, detach, expect_zero in ((True, True, True), (True, False, False), (False, True, False)):
+        model = mts3(H=4)
+        model.detach_fast = detach
+        if C_zero:
+            with torch.no_grad():
+                for p in model.task_matrix.parameters():
+                    p.zero_()
+        x = obs.clone().requires_grad_(True)
+        mean, var = model(x, act, torch.ones_like(mask))
+        (mean[:, 8:].sum() + var[:, 8:].sum()).backward()  # outputs of window 2
+        g = x.grad[:, :4].abs().max()  # w.r.t. observations of window 0
+        assert (g == 0) if expect_zero else (g > 0), (C_zero, detach, float(g))
+
+
+def test_partial_last_window_and_batch_of_one():
+    model = mts3(H=5)
+    obs, act, mask = data(2, 25)
+    full = model(obs, act, mask)
+    part = model(obs[:, :23], act[:, :23], mask[:, :23])
+    close(part[0][:, :20], full[0][:, :20])  # the first four windows are unaffected
+    assert part[0].shape == (2, 23, DO)
+    one = model(obs[:1], act[:1], mask[:1])  # batch of one (the authors' aggregation breaks here)
+    close(one[0], full[0][:1])
+
+
+def test_diagonal_ablation_keeps_the_covariance_diagonal():
+    torch.manual_seed(0)
+    model = perturb(build_mts3(DO, DA, M, 4, hidden=(8,), decoupled=True).to(DT))
+    obs, act, mask = data(2, 12)
+    out = model.run(obs, act, mask)
+    assert out.fast.predicted.cov_side.abs().max() == 0
+    assert out.task_posterior.cov_side.abs().max() == 0
+    assert not model.fast.transition.basis_12.requires_grad
+
+
+def test_no_action_ablation_has_no_abstract_action():
+    model = mts3(H=4, use_actions=False)
+    obs, act, mask = data(2, 12)
+    out = model.run(obs, act, mask)
+    assert out.alpha_mean is None and model.slow.action_matrix is None
+    assert torch.isfinite(out.mean).all()
+
+
+def test_open_loop_predictions_stay_bounded_at_initialization():
+    torch.manual_seed(0)
+    model = build_mts3(4, 2, 8, 25)
+    T = 1000
+    obs, act = torch.randn(2, T, 4), torch.randn(2, T, 2)
+    mask = torch.zeros(2, T, dtype=torch.bool)
+    mask[:, :50] = True
+    with torch.no_grad():
+        out = model.run(obs, act, mask)
+    assert torch.isfinite(out.mean).all() and out.mean.abs().max() < 10
+    assert out.fast.predicted.var_upper.max() < 100 and out.task_prior.var_upper.max() < 100
+
+
+# ----------------------------------------------------------------------------- masks and losses
+def test_window_imputation_mask_properties():
+    gen = torch.Generator().manual_seed(0)
+    m = window_imputation_mask((400, 60), 10, 1.0, 0.5, context_windows=2, generator=gen)
+    assert m.shape == (400, 60) and m.dtype == torch.bool
+    assert m[:, :20].all()
+    w = to_windows(m, 10)
+    assert ((w.all(-1)) | (~w.any(-1))).all()  # whole windows kept or dropped
+    assert abs(float((~w[:, 2:].any(-1)).double().mean()) - 0.5) < 0.03
+    m2 = window_imputation_mask((400, 60), 10, 0.7, 0.0, context_windows=0, generator=gen)
+    assert abs(float(m2.double().mean()) - 0.7) < 0.02
+    m3 = window_imputation_mask((2, 23), 10, 0.0, 0.0, context_windows=1)
+    assert m3[:, :10].all() and not m3[:, 10:].any()
+
+
+def test_window_imputation_loss_fn_masks_are_real():
+    """The masking probabilities are real arguments (the authors' code hard-codes one)."""
+    model = mts3(H=4)
+    obs, act, _ = data(3, 12)
+    gen = torch.Generator().manual_seed(0)
+    full = window_imputation_loss_fn(model, 4, 1.0, 0.0)((obs, act), gen)
+    close(full, prediction_loss(model, obs, act, None))
+    hidden = window_imputation_loss_fn(model, 4, 0.0, 0.0, context_windows=1)((obs, act), gen)
+    mask = torch.zeros(3, 12, dtype=torch.bool)
+    mask[:, :4] = True
+    close(hidden, prediction_loss(model, obs, act, mask))
+
+
+# ----------------------------------------------------------------------------- input checks
+def test_invalid_inputs_raise_naming_the_argument():
+    model = mts3(H=4)
+    obs, act, mask = data(2, 8)
+    with pytest.raises(ValueError, match="obs"):
+        model(obs[..., :2], act, mask)
+    with pytest.raises(ValueError, match="mask"):
+        model(obs, act, mask[:, :5])
+    with pytest.raises(ValueError, match="actions"):
+        model(obs, act[:, :5], mask)
+    with pytest.raises(ValueError, match="window"):
+        window_imputation_mask((2, 8), 0, 0.5, 0.5)
+    with pytest.raises(ValueError, match="step_keep_prob"):
+        window_imputation_mask((2, 8), 4, 1.5, 0.5)
+    with pytest.raises(ValueError, match="window_drop_prob"):
+        window_imputation_mask((2, 8), 4, 0.5, -0.1)
+    with pytest.raises(ValueError, match="window"):
+        to_windows(obs, 3)
+    with pytest.raises(ValueError, match="init"):
+        BlockMatrix(3, init=(1.0, 2.0))
+    with pytest.raises(ValueError, match="latent_dim"):
+        TaskSSM(DO, DA, 0, 4)
+    fast = build_fast_acrkn(DO, DA, M)
+    top = TaskSSM(DO, DA, M, 8)
+    low = TaskSSM(DO, DA, M, 4)  # not conditioned
+    with pytest.raises(ValueError, match="levels"):
+        HierarchicalMTS3(fast, [low, top], BlockMatrix(M))
+    with pytest.raises(ValueError, match="levels"):
+        HierarchicalMTS3(fast, [TaskSSM(DO, DA, M, 3, conditioned=True), TaskSSM(DO, DA, M, 8)], BlockMatrix(M))
+    with pytest.raises(ValueError, match="task_matrix"):
+        HierarchicalMTS3(fast, [top])
+    with pytest.raises(ValueError, match="slow"):
+        MTS3(fast, TaskSSM(DO, DA, M, 4, conditioned=True), BlockMatrix(M))
+    with pytest.raises(ValueError, match="task_matrix"):
+        MTS3(fast, TaskSSM(DO, DA, M, 4), BlockMatrix(M + 1))
+    with pytest.raises(ValueError, match="above"):
+        top.predict(top.initial_belief((2,), obs.float()), None, top.initial_belief((2,), obs.float()))
+    with pytest.raises(ValueError, match="task"):
+        run_fast_level(fast, obs.float(), act.float(), mask, fast.rkn.initial_belief((2,), obs.float()), 4)
+
+
+# ----------------------------------------------------------------------------- Transformer baseline
+def test_transformer_baseline_is_causal_and_respects_the_mask():
+    torch.manual_seed(0)
+    model = TransformerBaseline(DO, DA, d_model=8, n_heads=2, n_layers=1, dim_feedforward=16, head_hidden=(8,))
+    obs, act, mask = (x.float() for x in data(2, 12)[:2]), None, None
+    obs, act = torch.randn(2, 12, DO), torch.randn(2, 12, DA)
+    mask = torch.ones(2, 12, dtype=torch.bool)
+    mask[:, 6:] = False
+    mean, var = model(obs, act, mask)
+    assert mean.shape == (2, 12, DO) and (var > 0).all()
+    obs2 = obs.clone()
+    obs2[:, 7:] = 100.0  # hidden observations cannot matter
+    close(model(obs2, act, mask)[0], mean, 1e-6)
+    act2 = act.clone()
+    act2[:, 9] += 1.0  # a later action changes nothing before it
+    m2 = model(obs, act2, mask)[0]
+    close(m2[:, :9], mean[:, :9], 1e-6)
+    assert (m2[:, 9:] - mean[:, 9:]).abs().max() > 1e-6
+    bias = alibi_causal_bias(4, 2, obs)
+    assert torch.isinf(bias[:, 0, 1:]).all() and (bias[0].diagonal() == 0).all()
+    with pytest.raises(ValueError, match="d_model"):
+        TransformerBaseline(DO, DA, d_model=7, n_heads=2)
