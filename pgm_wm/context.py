@@ -4,7 +4,7 @@ A *context set* is an unordered collection of transitions :math:`x_n = [o_t, a_t
 drawn from one sequence whose hidden parameter (e.g. a payload mass) is constant. A set model
 (:class:`pgm_wm.aggregation.BayesianContextEncoder` or a deep-set baseline) maps the set to a
 Gaussian belief over the parameter and is trained by the Gaussian negative log-likelihood
-(Eq. (gauss-nll)) of the true value.
+(Eq. (ba-nll)) of the true value.
 
 * :func:`transition_features` builds the per-step elements from ``obs`` and ``actions``
   (:func:`normalized_transition_features` for a dataset split, normalized with training stats);
@@ -22,7 +22,7 @@ import copy
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -221,7 +221,7 @@ class ContextSetSampler:
 
 def gaussian_nll(y: Tensor, mean: Tensor, var: Tensor) -> Tensor:
     r"""Gaussian negative log-likelihood with diagonal covariance, summed over the last dim,
-    Eq. (gauss-nll): :math:`\tfrac12\sum_i[\log 2\pi\sigma_i + (y_i-\mu_i)^2/\sigma_i]`.
+    Eq. (ba-nll): :math:`\tfrac12\sum_i[\log 2\pi\sigma_i + (y_i-\mu_i)^2/\sigma_i]`.
 
     Shapes ``(..., k)`` -> ``(...)``; ``var`` must be positive.
     """
@@ -229,9 +229,6 @@ def gaussian_nll(y: Tensor, mean: Tensor, var: Tensor) -> Tensor:
     check_last_dims("mean", mean, (y.shape[-1],))
     check_last_dims("var", var, (y.shape[-1],))
     return 0.5 * (_LOG_2PI + var.log() + (y - mean) ** 2 / var).sum(-1)
-
-
-SetModel = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
 
 
 @dataclass

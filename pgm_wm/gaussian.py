@@ -254,11 +254,16 @@ def _predict_core(
 
 
 def _update_cov(
-    cov: Tensor, H: Tensor, R: Tensor, weight: Tensor | None = None
+    cov: Tensor,
+    H: Tensor,
+    R: Tensor,
+    weight: Tensor | None = None,
+    op_H: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     r"""Covariance half of Eq. (gauss-condition) in Kalman form, unchecked.
 
-    With :math:`S = H\Sigma H^\top + R = LL^\top` and :math:`W = L^{-1}H\Sigma`:
+    With :math:`S = H\Sigma H^\top + R = LL^\top` (itself Eq. gauss-marginal) and
+    :math:`W = L^{-1}H\Sigma`:
 
     .. math:: K^\top = S^{-1}H\Sigma = L^{-\top}W,\qquad
               \Sigma^+ = \Sigma - KSK^\top = \Sigma - W^\top W,
@@ -271,17 +276,17 @@ def _update_cov(
         cov: ``(..., n, n)``; H: ``(..., m, n)``; R: ``(..., m, m)``.
         weight: optional ``(...)`` 0/1 factor; where 0 the update is skipped exactly
             (:math:`W = 0`, :math:`K = 0`).
+        op_H: optional :func:`_sandwich_operator` of ``H`` (speed only).
 
     Returns ``(Σ⁺, L, Kᵀ, info)``: ``L: (..., m, m)`` the Cholesky factor of :math:`S` (for the
     evidence), ``Kᵀ: (..., m, n)`` the transposed gain, ``info`` non-zero where :math:`S` is
     not positive definite.
     """
-    Ht = H.transpose(-1, -2)
-    PHt = cov @ Ht                                         # Σ Hᵀ: one GEMM when Σ, H are 2-D
-    S = _addmm(R, H, PHt)
+    HS = (cov @ H.transpose(-1, -2)).transpose(-1, -2)     # H Σ (Σ symmetric): one GEMM for 2-D H
+    S = _sandwich(H, cov, op_H, R) if op_H is not None else _addmm(R, HS, H.transpose(-1, -2))
     chol, info = torch.linalg.cholesky_ex(S)               # reads the lower triangle only
-    W = torch.linalg.solve_triangular(chol, PHt.transpose(-1, -2), upper=False)   # L⁻¹ H Σ
-    Kt = torch.linalg.solve_triangular(chol.transpose(-1, -2), W, upper=True)
+    W = torch.linalg.solve_triangular(chol, HS, upper=False)                         # L⁻¹ H Σ
+    Kt = torch.linalg.solve_triangular(chol.transpose(-1, -2), W, upper=True)        # S⁻¹ H Σ
     if weight is not None:
         w = weight[..., None, None]
         W, Kt = W * w, Kt * w

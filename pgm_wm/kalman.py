@@ -224,21 +224,38 @@ def kalman_filter(
         y = torch.where(mask[..., None], y, torch.zeros((), dtype=y.dtype))
 
     w_steps = None if mask is None else mask.to(y.dtype).movedim(-1, 0).unbind(0)
-    op = _sandwich_operator(F)   # F Σ Fᵀ as one small GEMM (None: ordinary matmuls)
+    op_F = _sandwich_operator(F)   # F Σ Fᵀ as one small GEMM (None: ordinary matmuls)
+    op_H = _sandwich_operator(H)   # H Σ Hᵀ likewise
 
     # Pass 1, the covariances (the Riccati recursion, Eqs. kf-update and kf-predict for Σ).
     # They do not depend on the observed values, only on the parameters and the mask, so they
     # run first; when neither is batched, one covariance sequence serves the whole batch.
+    # Without a mask the recursion is time-invariant: once the predicted covariance repeats
+    # bit for bit (the steady state, typically after tens to hundreds of steps) every later
+    # step would recompute exactly the same numbers, so they are reused. This is skipped when a
+    # gradient is needed, so that autograd sees the full recursion.
+    needs_grad = torch.is_grad_enabled() and any(
+        x.requires_grad for x in (init.cov, F, H, Q, R)
+    )
+    detect_steady = mask is None and not needs_grad
     cov = init.cov
     p_covs, f_covs, chols, gains, infos = [], [], [], [], []
+    steady = None
     for t in range(T):
         p_covs.append(cov)
-        cov, chol, Kt, info = _update_cov(cov, H, R, None if w_steps is None else w_steps[t])
-        f_covs.append(cov)
+        if steady is None:
+            post, chol, Kt, info = _update_cov(cov, H, R, None if w_steps is None else w_steps[t], op_H)
+            nxt = _predict_cov(post, F, Q, op_F)
+            if detect_steady and torch.equal(nxt, cov):
+                steady = (post, chol, Kt, info)
+        else:
+            post, chol, Kt, info = steady
+            nxt = cov
+        f_covs.append(post)
         chols.append(chol)
         gains.append(Kt)
         infos.append(info)
-        cov = _predict_cov(cov, F, Q, op)
+        cov = nxt
     if bool((_stack(infos, 0) != 0).any()):
         raise ValueError("R: an innovation covariance H Σ Hᵀ + R was not positive definite")
 

@@ -70,7 +70,8 @@ from .acrkn import AcRKN, LinearControl, MLPControl, ZeroControl, _check_sequenc
 from .aggregation import BayesianContextEncoder, SetEncoder, set_condition
 from .factorized import FactorizedBelief, factorized_predict, linear_cause
 from .rkn import BeliefDecoder, FilterOutput, LocallyLinearTransition, ObservationEncoder, band_mask
-from .training import prediction_loss
+from .metrics import denormalize, denormalize_var, sliding_window_nll, sliding_window_rmse
+from .training import multistep_predict, prediction_loss
 
 __all__ = [
     "time_encoding",
@@ -90,6 +91,8 @@ __all__ = [
     "HierarchicalMTS3",
     "window_imputation_mask",
     "window_imputation_loss_fn",
+    "OpenLoopResult",
+    "evaluate_open_loop",
     "build_fast_acrkn",
     "build_mts3",
     "build_hierarchical_mts3",
@@ -401,9 +404,9 @@ def diagonal_filter(
     (Eq. rkn-update) and :func:`pgm_wm.factorized.factorized_predict` (Eq. rkn-predict), exact for
     this structure, tested equal to them, and about 3x fewer tensor operations per step.
 
-    The update is written with the observation precision :math:`p = m_t\oslash\sigma^{obs}`
-    (:math:`m_t\in\{0,1\}` the mask), so a missing observation (:math:`p = 0`) leaves the belief
-    unchanged without a branch: with :math:`g = p\oslash(1 + \sigma^u\odot p)`,
+    The update is written with :math:`g = m_t\oslash(\sigma^u + \sigma^{obs})` (:math:`m_t\in\{0,1\}`
+    the mask), so a missing observation (:math:`g = 0`) leaves the belief unchanged without a branch
+    and an exact observation (:math:`\sigma^{obs} = 0`) is handled too:
 
     .. math:: z^{u+} = z^u + \sigma^u\odot g\odot(w - z^u),\quad
               z^{l+} = z^l + \sigma^s\odot g\odot(w - z^u),\quad
@@ -421,7 +424,7 @@ def diagonal_filter(
     m = init.latent_obs_dim
     a11, a12, a21, a22 = A_diag
     T = w.shape[1]
-    prec = mask.to(w.dtype).unsqueeze(-1) / w_var
+    mf = mask.to(w.dtype).unsqueeze(-1)
     w = torch.where(mask.unsqueeze(-1), w, torch.zeros((), dtype=w.dtype, device=w.device))
     mean_in = inputs + task.mean.unsqueeze(-2)
     in_u, in_l = mean_in[..., :m].unbind(1), mean_in[..., m:].unbind(1)
@@ -434,13 +437,13 @@ def diagonal_filter(
     csu, css, csl = a21 * a11, a22 * a11 + a21 * a12, a22 * a12
     zu, zl = init.mean_upper, init.mean_lower
     su, sl, ss = init.var_upper, init.var_lower, init.cov_side
-    ws, ps = w.unbind(1), prec.unbind(1)
+    ws, rs, ms = w.unbind(1), w_var.unbind(1), mf.unbind(1)
     rec: list[list[Tensor]] = [[] for _ in range(15)]
     for t in range(T):
-        g = ps[t] / (1.0 + su * ps[t])
+        g = ms[t] / (su + rs[t])
         ge = g * (ws[t] - zu)
         zu_p, zl_p = zu + su * ge, zl + ss * ge
-        keep = 1.0 - su * g  # = 1 / (1 + σu p)
+        keep = 1.0 - su * g  # = σobs / (σu + σobs) where observed, 1 where not
         su_p, ss_p, sl_p = su * keep, ss * keep, sl - ss * ss * g
         zu_n = a11 * zu_p + a12 * zl_p + in_u[t]
         zl_n = a21 * zu_p + a22 * zl_p + in_l[t]
@@ -819,6 +822,39 @@ def window_imputation_loss_fn(
         return prediction_loss(model, obs, actions, mask, None, loss)
 
     return loss_fn
+
+
+# ----------------------------------------------------------------------------- long-horizon evaluation
+@dataclass(frozen=True)
+class OpenLoopResult:
+    """Open-loop predictions in original units and their sliding-window metrics.
+
+    Attributes:
+        mean, var, target: ``(B, horizon, do)``; index ``k - 1`` is the ``k``-step-ahead prediction.
+        rmse, nll: ``(horizon,)``, Eq. (metric-sliding-rmse) / Eq. (metric-sliding-nll).
+    """
+
+    mean: Tensor
+    var: Tensor
+    target: Tensor
+    rmse: Tensor
+    nll: Tensor
+
+
+@torch.no_grad()
+def evaluate_open_loop(model: Callable[..., tuple[Tensor, Tensor]], obs: Tensor, actions: Tensor, context_len: int,
+                       obs_mean: Tensor, obs_std: Tensor, metric_window: int) -> OpenLoopResult:
+    """Long-horizon evaluation: the model sees the first ``context_len`` (normalized) observations of
+    each segment ``obs: (B, S, do)`` and all actions, and predicts the remaining ``S - context_len``
+    observations open-loop (:func:`pgm_wm.training.multistep_predict`: later observations are never
+    passed to it). Predictions are mapped back to original units with the *training* statistics
+    ``obs_mean, obs_std`` before the sliding-window RMSE and NLL (window ``metric_window``)."""
+    mean, var = multistep_predict(model, obs, actions, context_len)
+    target = obs[:, context_len:]
+    m = denormalize(mean, obs_mean, obs_std)
+    v = denormalize_var(var, obs_std)
+    y = denormalize(target, obs_mean, obs_std)
+    return OpenLoopResult(m, v, y, sliding_window_rmse(m, y, metric_window), sliding_window_nll(m, v, y, metric_window))
 
 
 # ----------------------------------------------------------------------------- builders

@@ -122,6 +122,10 @@ def plot_gaussian_density(
     ax.plot(g, dens, label=label, **kwargs)
 
 
+# ----------------------------------------------------------------------------- Chapter 4 helpers
+__all__ += ["plot_rollout"]
+
+
 def plot_rollout(
     axes: Any,
     t: Any,
@@ -214,46 +218,6 @@ def mark_windows(ax: Any, start: float, stop: float, width: float, label: str | 
     style = {"color": "tab:purple", "ls": ":", "lw": 0.8, "alpha": 0.7, **kwargs}
     for i, x in enumerate(np.arange(start, stop + 1e-9 * width, width)):
         ax.axvline(x, label=label if i == 0 else None, **style)
-
-
-def plot_graphical_model(
-    ax: Any,
-    nodes: dict[str, tuple[float, float, str, str]],
-    edges: Sequence[tuple[str, str]],
-    title: str = "",
-    radius: float = 0.32,
-) -> None:
-    """Draw a small directed graphical model (Chapter 4).
-
-    Args:
-        nodes: ``{name: (x, y, latex_label, kind)}`` with ``kind`` one of ``"latent"`` (white),
-            ``"observed"`` (grey), ``"action"`` (green, a known input).
-        edges: ``(from, to)`` pairs, drawn as arrows between the node circles.
-    """
-    from matplotlib.patches import Circle, FancyArrowPatch
-
-    colors = {"latent": "white", "observed": "#d0d0d0", "action": "#b8e6b8"}
-    for name, (x, y, label, kind) in nodes.items():
-        if kind not in colors:
-            raise ValueError(f"nodes: unknown kind {kind!r} for node {name!r}")
-        ax.add_patch(Circle((x, y), radius, facecolor=colors[kind], edgecolor="k", lw=1.2, zorder=2))
-        ax.text(x, y, label, ha="center", va="center", fontsize=12, zorder=3)
-    for a, b in edges:
-        if a not in nodes or b not in nodes:
-            raise ValueError(f"edges: unknown node in edge ({a!r}, {b!r})")
-        (x0, y0), (x1, y1) = nodes[a][:2], nodes[b][:2]
-        d = float(np.hypot(x1 - x0, y1 - y0))
-        ux, uy = (x1 - x0) / d, (y1 - y0) / d
-        ax.add_patch(FancyArrowPatch((x0 + radius * ux, y0 + radius * uy), (x1 - radius * ux, y1 - radius * uy),
-                                     arrowstyle="-|>", mutation_scale=12, lw=1.2, color="k", zorder=1))
-    xs = [v[0] for v in nodes.values()]
-    ys = [v[1] for v in nodes.values()]
-    ax.set_xlim(min(xs) - 2 * radius, max(xs) + 2 * radius)
-    ax.set_ylim(min(ys) - 2 * radius, max(ys) + 2 * radius)
-    ax.set_aspect("equal")
-    ax.axis("off")
-    if title:
-        ax.set_title(title)
 
 
 # ----------------------------------------------------------------------------- Chapter 5 helpers

@@ -257,7 +257,14 @@ class ObservationEncoder(nn.Module):
 
 class BeliefDecoder(nn.Module):
     r"""Gaussian decoder, Eq. (rkn-decoder): mean from the belief mean, variance from the belief's
-    variances :math:`[\sigma^u, \sigma^l, \sigma^s]` (positive via ``elu + 1``)."""
+    variances :math:`[\sigma^u, \sigma^l, \sigma^s]` (positive via ``elu + 1``).
+
+    With ``log_var_input=True`` the variance network reads the scale-free features
+    :math:`[\log\sigma^u, \log\sigma^l, \sigma^s/\sqrt{\sigma^u\sigma^l}]` (log-variances and the
+    correlation) instead. The belief variances can span many orders of magnitude (a memory half
+    that is never corrected grows without bound), and raw inputs of that size drive the output
+    layer into ``elu``'s flat region, where the decoded variance underflows to zero.
+    """
 
     def __init__(
         self,
@@ -266,15 +273,21 @@ class BeliefDecoder(nn.Module):
         hidden: Sequence[int] = (64,),
         var_hidden: Sequence[int] = (64,),
         activation: type[nn.Module] = nn.ReLU,
+        log_var_input: bool = False,
     ) -> None:
         super().__init__()
         self.out_dim = out_dim
+        self.log_var_input = bool(log_var_input)
         self.mean_net = mlp(2 * latent_obs_dim, hidden, out_dim, activation)
         self.var_net = mlp(3 * latent_obs_dim, var_hidden, out_dim, activation)
 
     def forward(self, belief: FactorizedBelief) -> tuple[Tensor, Tensor]:
         """Returns ``(mean, var)`` each ``(..., out_dim)``."""
-        v = torch.cat([belief.var_upper, belief.var_lower, belief.cov_side], dim=-1)
+        su, sl, ss = belief.var_upper, belief.var_lower, belief.cov_side
+        if self.log_var_input:
+            v = torch.cat([su.log(), sl.log(), ss * torch.rsqrt(su * sl)], dim=-1)
+        else:
+            v = torch.cat([su, sl, ss], dim=-1)
         return self.mean_net(belief.mean), elup1(self.var_net(v))
 
 

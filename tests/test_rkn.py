@@ -348,3 +348,29 @@ def test_cuda_matches_cpu():
     mean_g, var_g = model_gpu(obs.cuda(), mask.cuda())
     torch.testing.assert_close(mean_g.cpu(), mean, rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(var_g.cpu(), var, rtol=1e-4, atol=1e-5)
+
+
+def test_fixed_transition_and_log_variance_decoder():
+    gen = torch.Generator().manual_seed(11)
+    A = torch.randn(6, 6, generator=gen, dtype=D)
+    q = 0.01 + torch.rand(6, generator=gen, dtype=D)
+    tr = LocallyLinearTransition.fixed(A, q)
+    torch.testing.assert_close(tr.dense_matrix(torch.zeros(6, dtype=D)), A, rtol=0, atol=0)
+    torch.testing.assert_close(tr.trans_var, q, rtol=1e-12, atol=1e-12)
+    banded = LocallyLinearTransition.fixed(A, q, bandwidth=0)
+    Ab = banded.dense_matrix(torch.zeros(6, dtype=D))
+    assert torch.equal(Ab[:3, :3], torch.diag(torch.diagonal(A[:3, :3])))
+    with pytest.raises(ValueError, match="A"):
+        LocallyLinearTransition.fixed(torch.eye(5, dtype=D), q)
+    with pytest.raises(ValueError, match="trans_var"):
+        LocallyLinearTransition.fixed(A, -q)
+    # the log-variance decoder stays finite and positive for beliefs of huge scale
+    torch.manual_seed(0)
+    dec = BeliefDecoder(3, 2, (8,), (8,), log_var_input=True)
+    big = FactorizedBelief(torch.zeros(6), torch.full((3,), 1e30), torch.full((3,), 1e-30), torch.zeros(3))
+    mean, var = dec(big)
+    assert torch.isfinite(var).all() and torch.all(var > 0)
+    # and it reads the correlation, not the raw side covariance
+    b1 = FactorizedBelief(torch.zeros(6), torch.full((3,), 4.0), torch.full((3,), 1.0), torch.full((3,), 1.0))
+    b2 = FactorizedBelief(torch.zeros(6), torch.full((3,), 4.0), torch.full((3,), 1.0), torch.full((3,), -1.0))
+    assert not torch.allclose(dec(b1)[1], dec(b2)[1])
