@@ -224,6 +224,29 @@ def alibi_causal_bias(T: int, n_heads: int, like: Tensor) -> Tensor:
     return bias.masked_fill(dist < 0, float("-inf"))
 
 
+class _AttentionBlock(nn.Module):
+    """Pre-norm Transformer block: ``x + MHA(LN(x))``, then ``x + FF(LN(x))``, with an additive
+    attention bias ``(heads, T, T)`` (written out with ``scaled_dot_product_attention`` so that
+    training and evaluation run the same code; PyTorch's encoder "fast path" in inference mode does
+    not treat a per-head float mask the same way)."""
+
+    def __init__(self, d_model: int, n_heads: int, dim_feedforward: int, dropout: float) -> None:
+        super().__init__()
+        self.n_heads = n_heads
+        self.norm1, self.norm2 = nn.LayerNorm(d_model), nn.LayerNorm(d_model)
+        self.qkv = nn.Linear(d_model, 3 * d_model)
+        self.proj = nn.Linear(d_model, d_model)
+        self.ff = nn.Sequential(nn.Linear(d_model, dim_feedforward), nn.ReLU(), nn.Linear(dim_feedforward, d_model))
+        self.drop = nn.Dropout(dropout)
+
+    def forward(self, x: Tensor, bias: Tensor) -> Tensor:
+        B, T, d = x.shape
+        q, k, v = self.qkv(self.norm1(x)).reshape(B, T, 3, self.n_heads, d // self.n_heads).permute(2, 0, 3, 1, 4)
+        att = torch.nn.functional.scaled_dot_product_attention(q, k, v, attn_mask=bias)  # (B, heads, T, dh)
+        x = x + self.drop(self.proj(att.transpose(1, 2).reshape(B, T, d)))
+        return x + self.drop(self.ff(self.norm2(x)))
+
+
 class TransformerBaseline(nn.Module):
     r"""A small *direct multi-step* Transformer world model (the "Multi-Transformer" competitor of
     the MTS3 chapter), with the world-model interface ``forward(obs, actions, mask) -> (mean, var)``.
@@ -252,9 +275,8 @@ class TransformerBaseline(nn.Module):
             raise ValueError(f"n_layers: must be positive, got {n_layers}")
         self.obs_dim, self.action_dim, self.n_heads = obs_dim, action_dim, n_heads
         self.embed = nn.Linear(obs_dim + 1 + action_dim, d_model)
-        layer = nn.TransformerEncoderLayer(d_model, n_heads, dim_feedforward, dropout, batch_first=True,
-                                           norm_first=True)
-        self.blocks = nn.TransformerEncoder(layer, n_layers, enable_nested_tensor=False)
+        self.blocks = nn.ModuleList(_AttentionBlock(d_model, n_heads, dim_feedforward, dropout)
+                                    for _ in range(n_layers))
         self.norm = nn.LayerNorm(d_model)
         self.head = _GaussianHead(d_model, obs_dim, head_hidden)
 
@@ -266,7 +288,9 @@ class TransformerBaseline(nn.Module):
                 else mask[..., None].to(obs.dtype))
         obs = torch.where(flag > 0, obs, torch.zeros((), dtype=obs.dtype, device=obs.device))
         h = self.embed(torch.cat([obs, flag, actions], dim=-1))
-        bias = alibi_causal_bias(T, self.n_heads, h).repeat(B, 1, 1)  # (B * heads, T, T)
-        h = self.norm(self.blocks(h, mask=bias))
+        bias = alibi_causal_bias(T, self.n_heads, h)  # (heads, T, T), broadcast over the batch
+        for block in self.blocks:
+            h = block(h, bias)
+        h = self.norm(h)
         mean, var = self.head(h)
         return mean, var + self.min_var

@@ -456,11 +456,13 @@ def floor_variance(model: WorldModel, min_var: float = 1e-8) -> WorldModel:
 
 
 def hip_loss_fn(model: HiPRSSM, keep_prob: float = 1.0, context_steps: int = 1,
-                loss: str = "nll", min_var: float = 1e-8) -> Callable[[tuple[Tensor, ...], torch.Generator], Tensor]:
+                loss: str = "nll", min_var: float = 1e-8, open_loop_prob: float = 0.0
+                ) -> Callable[[tuple[Tensor, ...], torch.Generator], Tensor]:
     """A ``loss_fn`` for :func:`pgm_wm.training.fit` on batches ``HiPWindows.tensors()`` =
     ``(obs, actions, valid, context, context_mask)``: a fresh imputation mask per batch
     (:func:`pgm_wm.training.imputation_mask`, each observation kept with ``keep_prob``, the first
-    ``context_steps`` always), then :func:`pgm_wm.training.prediction_loss` (all valid targets
+    ``context_steps`` always, and with probability ``open_loop_prob`` everything after a random
+    cut hidden), then :func:`pgm_wm.training.prediction_loss` (all valid targets
     count, observed or not) with variances floored at ``min_var`` (:func:`floor_variance`)."""
     from .training import imputation_mask, prediction_loss
 
@@ -468,7 +470,8 @@ def hip_loss_fn(model: HiPRSSM, keep_prob: float = 1.0, context_steps: int = 1,
 
     def loss_fn(batch: tuple[Tensor, ...], gen: torch.Generator) -> Tensor:
         obs, actions, valid, context, cmask = batch
-        mask = imputation_mask(obs.shape[:2], keep_prob, context_steps, gen, device=obs.device) & valid
+        mask = imputation_mask(obs.shape[:2], keep_prob, context_steps, gen, device=obs.device,
+                               open_loop_prob=open_loop_prob) & valid
         model_fn = lambda o, a, m: floored(o, a, m, context, cmask)  # noqa: E731
         return prediction_loss(model_fn, obs, actions, mask, valid, loss)
 

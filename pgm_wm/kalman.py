@@ -307,7 +307,7 @@ def kalman_filter(
     return KalmanFilterResult(
         filtered=_stack_gaussian(stacked[..., 1::2, :], f_covs),
         predicted=_stack_gaussian(stacked[..., 0:-1:2, :], p_covs),
-        next_prior=Gaussian(stacked[..., -1, :], cov),
+        next_prior=Gaussian(stacked[..., -1, :], cov.expand(*batch, n, n)),
         log_likelihoods=log_likelihoods,
     )
 

@@ -8,9 +8,14 @@ An RKN is ``encoder -> [update, predict]* -> decoder``:
   (:func:`pgm_wm.factorized.factorized_update`, Eq. rkn-update); a missing observation skips it;
 * the **predict** step uses a locally linear transition :math:`A_t = \sum_k \alpha_k(z_t^+) A^{(k)}`
   made of band-limited blocks (Eq. rkn-transition) and learned transition noise, via
-  :func:`pgm_wm.factorized.factorized_predict` (Eq. rkn-predict); later chapters add more
-  independent causes to this predict step (an action term, a latent task);
+  :func:`pgm_wm.factorized.factorized_predict_from_matrix` (Eq. rkn-predict; this step keeps only
+  the block diagonals of :math:`A\Sigma A^\top`, the RKN's one approximation); later chapters add
+  more independent causes to this predict step (an action term, a latent task);
 * the **decoder** maps the belief to a Gaussian over the target (Eq. rkn-decoder).
+
+``RKN(..., diagonal_only=True)`` is the diagonal-covariance ablation of Chapter 3 (side
+covariance forced to zero, so the memory half is never corrected by an observation).
+Everything runs on CPU or CUDA (the device and dtype of the inputs are followed).
 
 Positive quantities use ``elu(x) + 1`` (:func:`elup1`), which is smooth, equals ``x + 1`` for
 ``x > 0`` and decays to 0 (never reaching it) for ``x -> -inf``.

@@ -312,3 +312,52 @@ def test_bad_inputs_raise_value_error():
         AcRKN(ObservationEncoder(3, 4), LocallyLinearTransition(4), MLPControl(2, 5), BeliefDecoder(4, 3))
     with pytest.raises(ValueError, match="next_w"):
         InverseDynamicsHead(4, 2)(torch.zeros(3, 8), torch.zeros(3, 5))
+
+
+# --------------------------------------------------------------------------- norm-bounded transition
+
+def test_norm_bounded_transition_bounds_every_A_and_keeps_small_ones():
+    from pgm_wm.acrkn import NormBoundedTransition
+
+    torch.manual_seed(0)
+    base = LocallyLinearTransition(4, num_basis=3, bandwidth=1).to(DT)
+    with torch.no_grad():
+        base.basis_11.add_(0.5 * torch.randn_like(base.basis_11))
+    bounded = NormBoundedTransition(base, max_norm=0.95)
+    z = 3.0 * torch.randn(50, 8, dtype=DT)
+    assert float(torch.linalg.matrix_norm(base.dense_matrix(z), ord=2).max()) > 1.0  # the base is not
+    assert float(torch.linalg.matrix_norm(bounded.dense_matrix(z), ord=2).max()) <= 0.95 + 1e-10
+    # a transition that already satisfies the bound is left unchanged
+    loose = NormBoundedTransition(base, max_norm=100.0)
+    torch.testing.assert_close(loose.dense_matrix(z), base.dense_matrix(z))
+    # its predict step equals the dense algebra with the bounded matrix (diagonal-block case exact)
+    base0 = LocallyLinearTransition(3, num_basis=2, bandwidth=0).to(DT)
+    b0 = NormBoundedTransition(base0, 0.9)
+    from pgm_wm.factorized import FactorizedBelief
+    post = FactorizedBelief(torch.randn(5, 6, dtype=DT), torch.rand(5, 3, dtype=DT) + 0.5,
+                            torch.rand(5, 3, dtype=DT) + 0.5, 0.1 * torch.rand(5, 3, dtype=DT))
+    prior = b0(post)
+    A = b0.dense_matrix(post.mean)
+    dense = post.to_dense()
+    torch.testing.assert_close(prior.mean, (A @ dense.mean[..., None])[..., 0])
+    want_cov = A @ dense.cov @ A.transpose(-1, -2) + torch.diag(base0.trans_var.detach())
+    torch.testing.assert_close(prior.to_dense().cov, want_cov)
+    with pytest.raises(ValueError, match="max_norm"):
+        NormBoundedTransition(base, 0.0)
+
+
+def test_norm_bounded_acrkn_latent_stays_bounded_open_loop():
+    from pgm_wm.acrkn import NormBoundedTransition
+
+    model = make_model(num_basis=3, control="zero")
+    with torch.no_grad():  # make the base transition expansive
+        model.rkn.transition.basis_11.fill_(0.0)
+        model.rkn.transition.basis_11.add_(0.3 * torch.eye(4, dtype=DT))
+    obs, act, _ = data(T=60)
+    mask = torch.zeros(3, 60, dtype=torch.bool)
+    mask[:, :5] = True
+    grow = model.filter(obs, act, mask).predicted.mean.norm(dim=-1)
+    model.rkn.transition = NormBoundedTransition(model.rkn.transition, 1.0)
+    keep = model.filter(obs, act, mask).predicted.mean.norm(dim=-1)
+    assert bool((grow[:, -1] > 100 * grow[:, 5]).all())
+    assert bool((keep[:, 4:].diff(dim=-1) <= 1e-9).all())  # non-expansive without inputs (b = 0)

@@ -224,7 +224,7 @@ def test_smoother_and_loglik_equal_dense_conditioning(seed: int, n: int, m: int,
 
 
 def test_all_missing_random_walk_variance_grows_by_q_per_step() -> None:
-    T, q, p0 = 10_000, 0.37, 2.5
+    T, q, p0 = 3_000, 0.37, 2.5
     y = torch.full((2, T, 1), float("nan"), dtype=DT)
     res = kalman_filter(
         y, Gaussian(torch.tensor([1.5], dtype=DT), torch.tensor([[p0]], dtype=DT)),
@@ -245,23 +245,43 @@ def test_all_missing_random_walk_variance_grows_by_q_per_step() -> None:
 
 
 def test_long_sequence_reaches_riccati_steady_state() -> None:
-    """10 000 steps of a 4-d constant-velocity model: no NaN, and the predicted covariance
-    converges to the solution of the discrete algebraic Riccati equation."""
+    """10 000 steps of a 4-d constant-velocity model: no NaN/inf anywhere (filter, likelihood,
+    smoother), and the predicted covariance converges to the solution of the discrete
+    algebraic Riccati equation; the filtered means agree with filterpy at the end."""
     rng = np.random.default_rng(0)
     dt = 0.1
     F = np.block([[np.eye(2), dt * np.eye(2)], [np.zeros((2, 2)), np.eye(2)]])
     Q = 0.5 * np.block([[dt**3 / 3 * np.eye(2), dt**2 / 2 * np.eye(2)], [dt**2 / 2 * np.eye(2), dt * np.eye(2)]])
     H, R = np.hstack([np.eye(2), np.zeros((2, 2))]), np.eye(2)
     T = 10_000
-    y = t(rng.standard_normal((3, T, 2)) * 50)
-    mask = torch.as_tensor(rng.random((3, T)) > 0.1)
-    mask[:, -200:] = True   # end with a fully observed stretch so every sequence is at steady state
-    res = kalman_filter(y, Gaussian(torch.zeros(4, dtype=DT), 100 * torch.eye(4, dtype=DT)), t(F), t(H), t(Q), t(R), mask=mask)
-    for x in (res.filtered.mean, res.filtered.cov, res.log_likelihoods):
+    zs = np.cumsum(rng.standard_normal((2, T, 2)), axis=1) * 5     # wandering far from the origin
+    res = kalman_filter(t(zs), Gaussian(torch.zeros(4, dtype=DT), 100 * torch.eye(4, dtype=DT)), t(F), t(H), t(Q), t(R))
+    sm = rts_smoother(res, t(F))
+    for x in (res.filtered.mean, res.filtered.cov, res.log_likelihoods, sm.mean, sm.cov):
         assert bool(torch.isfinite(x).all())
     P_inf = solve_discrete_are(F.T, H.T, Q, R)   # steady-state prior covariance
-    for b in range(3):
+    for b in range(2):
         close(res.next_prior.cov[b], P_inf, tol=1e-9)
+    s = dict(F=F, H=H, Q=Q, R=R, x0=np.zeros(4), P0=100 * np.eye(4))
+    (mu, cov, _, _), lls, _ = filterpy_run(s, zs[1], np.ones(T, bool))
+    close(res.filtered.mean[1, -100:], mu[-100:])
+    close(res.filtered.cov[1, -1], cov[-1])
+    close(res.log_likelihood[1], lls.sum(), tol=1e-9)
+
+
+def test_steady_state_reuse_matches_full_recursion() -> None:
+    """The filter reuses the covariances once the Riccati recursion is at a bitwise fixed point
+    (no mask, no gradient); with a gradient required it recomputes every step. Same numbers."""
+    rng = np.random.default_rng(5)
+    s = random_system(rng, 3, 2)
+    y = t(rng.standard_normal((4, 400, 2)))
+    args = (Gaussian(t(s["x0"]), t(s["P0"])), t(s["F"]), t(s["H"]), t(s["Q"]), t(s["R"]))
+    fast = kalman_filter(y, *args)
+    Q = t(s["Q"]).requires_grad_()
+    slow = kalman_filter(y, args[0], args[1], args[2], Q, args[4])
+    close(fast.filtered.cov, slow.filtered.cov.detach(), tol=1e-12)
+    close(fast.filtered.mean, slow.filtered.mean.detach(), tol=1e-12)
+    close(fast.log_likelihoods, slow.log_likelihoods.detach(), tol=1e-12)
 
 
 # ---------------------------------------------------------------- batching, masks, gradients

@@ -457,12 +457,14 @@ def test_invalid_inputs_raise_naming_the_argument():
 def test_transformer_baseline_is_causal_and_respects_the_mask():
     torch.manual_seed(0)
     model = TransformerBaseline(DO, DA, d_model=8, n_heads=2, n_layers=1, dim_feedforward=16, head_hidden=(8,))
-    obs, act, mask = (x.float() for x in data(2, 12)[:2]), None, None
     obs, act = torch.randn(2, 12, DO), torch.randn(2, 12, DA)
     mask = torch.ones(2, 12, dtype=torch.bool)
     mask[:, 6:] = False
     mean, var = model(obs, act, mask)
     assert mean.shape == (2, 12, DO) and (var > 0).all()
+    model.eval()
+    with torch.no_grad():  # inference mode runs the same computation (no "fast path" surprises)
+        close(model(obs, act, mask)[0], mean.detach(), 1e-6)
     obs2 = obs.clone()
     obs2[:, 7:] = 100.0  # hidden observations cannot matter
     close(model(obs2, act, mask)[0], mean, 1e-6)
@@ -475,3 +477,24 @@ def test_transformer_baseline_is_causal_and_respects_the_mask():
     assert torch.isinf(bias[:, 0, 1:]).all() and (bias[0].diagonal() == 0).all()
     with pytest.raises(ValueError, match="d_model"):
         TransformerBaseline(DO, DA, d_model=7, n_heads=2)
+
+
+def test_evaluate_open_loop_uses_only_the_context_and_original_units():
+    from pgm_wm.mts3 import evaluate_open_loop
+
+    model = mts3(H=4)
+    obs, act, _ = data(2, 16)
+    mu, sd = torch.tensor([1.0, -2.0, 0.5], dtype=DT), torch.tensor([2.0, 0.5, 3.0], dtype=DT)
+    res = evaluate_open_loop(model, obs, act, 8, mu, sd, 3)
+    obs2 = obs.clone()
+    obs2[:, 8:] += 5.0  # future observations must not matter
+    res2 = evaluate_open_loop(model, obs2, act, 8, mu, sd, 3)
+    close(res.mean, res2.mean)
+    mask = torch.zeros(2, 15, dtype=torch.bool)
+    mask[:, :8] = True
+    mean, var = model(torch.where(mask[..., None], obs[:, :15], 0.0), act[:, :15], mask)
+    close(res.mean, mean[:, 7:] * sd + mu)
+    close(res.var, var[:, 7:] * sd**2)
+    close(res.target, obs[:, 8:] * sd + mu)
+    err = ((res.mean - res.target) ** 2).mean((0, 2))
+    close(res.rmse[2], err[:3].mean().sqrt())

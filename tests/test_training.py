@@ -289,3 +289,22 @@ def test_metric_bad_inputs():
         normalize(x, 0.0, torch.tensor([1.0, 0.0]))
     with pytest.raises(ValueError, match="std"):
         denormalize(x, 0.0, torch.ones(3))
+
+
+def test_multistep_metrics_matches_manual_windows():
+    from pgm_wm.training import multistep_metrics
+
+    g = torch.Generator().manual_seed(4)
+    obs, act = torch.randn(2, 30, 2, generator=g, dtype=DT), torch.randn(2, 30, 2, generator=g, dtype=DT)
+    mu, sd = torch.tensor([1.0, -1.0], dtype=DT), torch.tensor([2.0, 0.5], dtype=DT)
+    res = multistep_metrics(CountingModel(), obs, act, 5, 4, stride=7, obs_mean=mu, obs_std=sd)
+    starts = list(range(0, 30 - 9 + 1, 7))
+    assert res["mean"].shape == (2 * len(starts), 4, 2)
+    errs = []
+    for b in range(2):
+        for s in starts:
+            pred = obs[b, s + 4] + torch.arange(1, 5, dtype=DT)[:, None]  # counting model: last obs + k
+            errs.append((denormalize(pred, mu, sd) - denormalize(obs[b, s + 5:s + 9], mu, sd)) ** 2)
+    want = torch.stack(errs).mean(dim=(0, 2)).sqrt()
+    torch.testing.assert_close(res["rmse"], want)
+    assert res["nll"].shape == (4,)
