@@ -226,7 +226,8 @@ def difference_scaling(stats: Mapping[str, Any]) -> tuple[Tensor, Tensor]:
 class DifferenceReadout(nn.Module):
     r"""Turn decoded normalized differences into next-observation predictions, Eq. (acrkn-diff).
 
-    ``predict_differences=False``: the decoder output *is* the prediction of :math:`o_{t+1}`.
+    ``predict_differences=False``: the decoder output *is* the prediction of :math:`o_{t+1}`
+    (``memory`` is then unused).
     ``predict_differences=True``: :math:`\hat o_{t+1} = m_t + \mathrm{shift} + \mathrm{scale}\odot\delta_t`
     with the memory :math:`m_t` = the observation if observed, else the previous prediction.
     Shared by :class:`AcRKN` and the recurrent baselines (:mod:`pgm_wm.baselines`).
@@ -234,9 +235,12 @@ class DifferenceReadout(nn.Module):
 
     def __init__(self, obs_dim: int, predict_differences: bool = True,
                  shift: Tensor | Sequence[float] | None = None,
-                 scale: Tensor | Sequence[float] | None = None) -> None:
+                 scale: Tensor | Sequence[float] | None = None,
+                 var_floor: float = 1e-4) -> None:
         super().__init__()
-        self.obs_dim, self.predict_differences = obs_dim, predict_differences
+        if var_floor < 0:
+            raise ValueError(f"var_floor: must be >= 0, got {var_floor}")
+        self.obs_dim, self.predict_differences, self.var_floor = obs_dim, predict_differences, float(var_floor)
         shift_t = torch.zeros(obs_dim) if shift is None else torch.as_tensor(shift, dtype=torch.get_default_dtype()).clone()
         scale_t = torch.ones(obs_dim) if scale is None else torch.as_tensor(scale, dtype=torch.get_default_dtype()).clone()
         if shift_t.shape != (obs_dim,):
@@ -247,7 +251,11 @@ class DifferenceReadout(nn.Module):
         self.register_buffer("scale", scale_t)
 
     def step(self, memory: Tensor, delta_mean: Tensor, delta_var: Tensor) -> tuple[Tensor, Tensor]:
-        """One step: ``memory, delta_mean, delta_var: (..., do)`` -> prediction ``(mean, var)``."""
+        """One step: ``memory, delta_mean, delta_var: (..., do)`` -> prediction ``(mean, var)``.
+
+        ``var_floor`` is added to the decoded variance (in decoder units) so that an ``elu + 1``
+        output that underflows to 0 in float32 cannot make the likelihood infinite."""
+        delta_var = delta_var + self.var_floor
         if not self.predict_differences:
             return delta_mean, delta_var
         shift, scale = self.shift.to(delta_mean.dtype), self.scale.to(delta_mean.dtype)
@@ -263,9 +271,7 @@ class DifferenceReadout(nn.Module):
 
     def forward(self, obs: Tensor, mask: Tensor | None, delta_mean: Tensor, delta_var: Tensor) -> tuple[Tensor, Tensor]:
         """Whole sequence: ``obs, delta_mean, delta_var: (B, T, do)``, ``mask: (B, T)`` -> ``(mean, var)``."""
-        if not self.predict_differences:
-            return delta_mean, delta_var
-        if mask is None:
+        if not self.predict_differences or mask is None:
             return self.step(obs, delta_mean, delta_var)
         means, vars_ = [], []
         last = None

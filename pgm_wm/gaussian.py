@@ -117,7 +117,7 @@ class Gaussian:
 
     def validate(self, name: str = "belief") -> "Gaussian":
         """Check that ``cov`` is symmetric positive definite; raise ``ValueError`` naming ``name``."""
-        check_spd(f"{name}.cov", self.cov)
+        check_spd(f"{name}.cov", self.cov.detach())
         return self
 
     def to(self, dtype: torch.dtype) -> "Gaussian":
@@ -410,7 +410,7 @@ def marginalize_linear(
     if noise_cov is not None:
         check_last_dims("noise_cov", noise_cov, (m, m))
         if validate:
-            check_spd("noise_cov", noise_cov, semidefinite=True)
+            check_spd("noise_cov", noise_cov.detach(), semidefinite=True)
         cov = cov + noise_cov
     if offset is not None:
         check_last_dims("offset", offset, (m,))
@@ -506,7 +506,7 @@ def condition_with_evidence(
     """
     _check_observation(prior, H, R, y, offset)
     if validate:
-        check_spd("R", R)
+        check_spd("R", R.detach())
     mean, cov, loglik, info = _condition_core(prior.mean, prior.cov, H, R, y, offset)
     if bool((info != 0).any()):
         raise ValueError("R: the innovation covariance H Σ Hᵀ + R is not positive definite")

@@ -93,7 +93,7 @@ def kf_predict(
     check_last_dims("F", F, (n, n))
     check_last_dims("Q", Q, (n, n))
     if validate:
-        check_spd("Q", Q, semidefinite=True)
+        check_spd("Q", Q.detach(), semidefinite=True)
     offset = _control_offset(B, u, n)
     mean, cov = _predict_core(belief.mean, belief.cov, F, Q, offset)
     return Gaussian(mean, cov)
@@ -213,9 +213,9 @@ def kalman_filter(
     if offsets is not None:
         check_same_batch(("u", "y"), (offsets[..., 0, :], y[..., 0, :]), (1, 1))
     if validate:
-        check_spd("Q", Q, semidefinite=True)
-        check_spd("R", R)
-        check_spd("init.cov", init.cov)
+        check_spd("Q", Q.detach(), semidefinite=True)
+        check_spd("R", R.detach())
+        check_spd("init.cov", init.cov.detach())
         observed = y if mask is None else y[mask]
         if not bool(torch.isfinite(observed).all()):
             raise ValueError("y: contains NaN or infinite values at observed steps")
@@ -223,7 +223,14 @@ def kalman_filter(
         # zero the ignored entries so that NaNs there cannot reach values or gradients
         y = torch.where(mask[..., None], y, torch.zeros((), dtype=y.dtype))
 
-    w_steps = None if mask is None else mask.to(y.dtype).movedim(-1, 0).unbind(0)
+    w_steps = None
+    if mask is not None:
+        flat_mask = mask.reshape(-1, T)
+        if bool((flat_mask == flat_mask[:1]).all()):
+            # the same steps are missing in every sequence: the covariances stay shared
+            w_steps = flat_mask[0].to(y.dtype).unbind(0)
+        else:
+            w_steps = mask.to(y.dtype).movedim(-1, 0).unbind(0)
     op_F = _sandwich_operator(F)   # F Σ Fᵀ as one small GEMM (None: ordinary matmuls)
     op_H = _sandwich_operator(H)   # H Σ Hᵀ likewise
 

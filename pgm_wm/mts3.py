@@ -53,24 +53,31 @@ would correlate :math:`z` and :math:`l`. The slow level, not the fast one, learn
 observations of its window. With no task level it is the ac-RKN; with one it is :class:`MTS3`.
 
 Training uses imputation at both scales: :func:`window_imputation_mask` hides single steps and
-whole windows.
+whole windows. :func:`evaluate_open_loop` gives long-horizon predictions after a context and
+their sliding-window metrics (:mod:`pgm_wm.metrics`).
+
+Implementation notes. The slow levels never look at the fast beliefs, so :class:`MTS3` first
+runs the slow level over all windows, then the fast level (:func:`run_fast_level`). Because the
+fast gradients are cut at window boundaries anyway, the fast level can be run as one pass
+without gradients (to get each window's initial belief) followed by *all windows in parallel*
+as a batch — same values and gradients, a graph only :math:`H` steps deep. With diagonal blocks
+the fast loop is :func:`diagonal_filter`, the factorized update/predict written elementwise.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_last_dims, check_mask, check_tensor
+from ._checks import check_last_dims
 from .acrkn import AcRKN, LinearControl, MLPControl, ZeroControl, _check_sequences
 from .aggregation import BayesianContextEncoder, SetEncoder, set_condition
 from .factorized import FactorizedBelief, factorized_predict, linear_cause
-from .rkn import BeliefDecoder, FilterOutput, LocallyLinearTransition, ObservationEncoder, band_mask
 from .metrics import denormalize, denormalize_var, sliding_window_nll, sliding_window_rmse
+from .rkn import BeliefDecoder, FilterOutput, LocallyLinearTransition, ObservationEncoder, band_mask
 from .training import multistep_predict, prediction_loss
 
 __all__ = [

@@ -336,3 +336,38 @@ def plot_task_over_time(
     axes[0].set_ylabel(latent_label)
     axes[1].set_ylabel(truth_label)
     axes[1].set_xlabel("time [s]")
+
+
+# ----------------------------------------------------------------------------- Chapter 1 helpers
+__all__ += ["plot_filter_1d"]
+
+
+def plot_filter_1d(
+    ax: Any,
+    t: Any,
+    obs: Any,
+    valid: Any,
+    beliefs: dict[str, tuple[Any, Any]],
+    truth: Any | None = None,
+    n_std: float = 2.0,
+    shade: bool = True,
+) -> None:
+    """One coordinate of a filtering problem: observations, optional truth, beliefs with bands.
+
+    Args:
+        ax: a matplotlib axis. t: ``(T,)`` time stamps. obs: ``(T,)`` observations (only the
+            entries where ``valid`` (``(T,)`` bool) is True are drawn). truth: ``(T,)`` or None.
+        beliefs: ``{label: (mean (T,), var (T,))}``, each drawn as a line with a ``± n_std`` band.
+        shade: shade the steps with a missing observation.
+    """
+    t, obs, valid = to_numpy(t), to_numpy(obs), to_numpy(valid).astype(bool)
+    if obs.shape != t.shape or valid.shape != t.shape:
+        raise ValueError(f"obs: expected obs and valid of shape {t.shape}, got {obs.shape} and {valid.shape}")
+    if shade and not valid.all():
+        shade_missing(ax, t, valid, label="missing observation")
+    if truth is not None:
+        ax.plot(t, to_numpy(truth), color="k", lw=1.2, label="true value")
+    ax.plot(t[valid], obs[valid], ".", color="0.35", ms=4, label="observation")
+    for name, (mean, var) in beliefs.items():
+        plot_belief(ax, t, mean, var, label=name, n_std=n_std)
+    ax.grid(alpha=0.3)

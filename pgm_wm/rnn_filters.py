@@ -215,7 +215,6 @@ def fit_filter(
     drop_prob: float = 0.0,
     gap_prob: float = 0.0,
     context_steps: int = 5,
-    ramp_epochs: int = 0,
 ) -> FitHistory:
     """Train ``model(obs, mask) -> (mean, var)`` on the Gaussian NLL of the targets (Eq. metric-nll).
 
@@ -227,29 +226,20 @@ def fit_filter(
     Frame dropout (training only): with ``drop_prob`` each frame after the first
     ``context_steps`` of a window is additionally hidden, and with ``gap_prob`` a window also
     loses every frame after a random cut (:func:`pgm_wm.training.imputation_mask`). The targets
-    stay, so the model must predict through the gaps; the loss covers all steps. With
-    ``ramp_epochs`` both probabilities grow linearly from 0 to their values over that many epochs
-    (a curriculum: first learn to read the frames, then to bridge gaps).
+    stay, so the model must predict through the gaps; the loss covers all steps.
     """
     T = train.obs.shape[1]
     if crop is not None and not 0 < crop <= T:
         raise ValueError(f"crop: must be in [1, {T}], got {crop}")
     if not 0.0 <= drop_prob < 1.0 or not 0.0 <= gap_prob <= 1.0:
         raise ValueError(f"drop_prob: need 0 <= drop_prob < 1 and 0 <= gap_prob <= 1, got {drop_prob}, {gap_prob}")
-    if ramp_epochs < 0:
-        raise ValueError(f"ramp_epochs: must be >= 0, got {ramp_epochs}")
     augment = drop_prob > 0 or gap_prob > 0
-    batches_per_epoch = (len(train) + batch_size - 1) // batch_size
-    seen = [0]  # minibatches so far (fit calls loss_fn once per minibatch)
 
     def loss_fn(batch: tuple[Tensor, ...], gen: torch.Generator) -> Tensor:
         obs, mask, targets = batch
         if augment:
-            epoch = seen[0] / batches_per_epoch
-            scale = min(1.0, epoch / ramp_epochs) if ramp_epochs > 0 else 1.0
-            mask = mask & imputation_mask(tuple(mask.shape), 1.0 - scale * drop_prob, context_steps, gen,
-                                          device=mask.device, open_loop_prob=scale * gap_prob)
-        seen[0] += 1
+            mask = mask & imputation_mask(tuple(mask.shape), 1.0 - drop_prob, context_steps, gen,
+                                          device=mask.device, open_loop_prob=gap_prob)
         mean, var = model(obs, mask)
         return gaussian_nll(mean, var, targets)
 

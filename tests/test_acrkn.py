@@ -185,7 +185,7 @@ def test_difference_readout_memory_rule_matches_recursion():
             mem = obs[b, t] if mask[b, t] else last
             want = mem + shift + scale * d_mean[b, t]
             torch.testing.assert_close(mean[b, t], want)
-            torch.testing.assert_close(var[b, t], scale**2 * d_var[b, t])
+            torch.testing.assert_close(var[b, t], scale**2 * (d_var[b, t] + model.readout.var_floor))
             last = want
 
 
@@ -195,7 +195,7 @@ def test_absolute_prediction_mode_is_the_decoder_output():
     mean, var = model(obs, act, mask)
     d_mean, d_var = model.decoder(model.filter(obs, act, mask).predicted)
     torch.testing.assert_close(mean, d_mean)
-    torch.testing.assert_close(var, d_var)
+    torch.testing.assert_close(var, d_var + model.readout.var_floor)
 
 
 def test_difference_scaling_from_stats():

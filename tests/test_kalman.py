@@ -244,15 +244,19 @@ def test_all_missing_random_walk_variance_grows_by_q_per_step() -> None:
     close(sm.cov[..., 0, 0], (p0 + q * steps).expand(2, T), tol=1e-9)
 
 
+def constant_velocity(dt: float = 0.1, q: float = 0.5):
+    """2-D constant-velocity model (white-noise acceleration), positions observed."""
+    F = np.block([[np.eye(2), dt * np.eye(2)], [np.zeros((2, 2)), np.eye(2)]])
+    Q = q * np.block([[dt**3 / 3 * np.eye(2), dt**2 / 2 * np.eye(2)], [dt**2 / 2 * np.eye(2), dt * np.eye(2)]])
+    return F, np.hstack([np.eye(2), np.zeros((2, 2))]), Q, np.eye(2)
+
+
 def test_long_sequence_reaches_riccati_steady_state() -> None:
     """10 000 steps of a 4-d constant-velocity model: no NaN/inf anywhere (filter, likelihood,
     smoother), and the predicted covariance converges to the solution of the discrete
     algebraic Riccati equation; the filtered means agree with filterpy at the end."""
     rng = np.random.default_rng(0)
-    dt = 0.1
-    F = np.block([[np.eye(2), dt * np.eye(2)], [np.zeros((2, 2)), np.eye(2)]])
-    Q = 0.5 * np.block([[dt**3 / 3 * np.eye(2), dt**2 / 2 * np.eye(2)], [dt**2 / 2 * np.eye(2), dt * np.eye(2)]])
-    H, R = np.hstack([np.eye(2), np.zeros((2, 2))]), np.eye(2)
+    F, H, Q, R = constant_velocity()
     T = 10_000
     zs = np.cumsum(rng.standard_normal((2, T, 2)), axis=1) * 5     # wandering far from the origin
     res = kalman_filter(t(zs), Gaussian(torch.zeros(4, dtype=DT), 100 * torch.eye(4, dtype=DT)), t(F), t(H), t(Q), t(R))
@@ -262,23 +266,25 @@ def test_long_sequence_reaches_riccati_steady_state() -> None:
     P_inf = solve_discrete_are(F.T, H.T, Q, R)   # steady-state prior covariance
     for b in range(2):
         close(res.next_prior.cov[b], P_inf, tol=1e-9)
-    s = dict(F=F, H=H, Q=Q, R=R, x0=np.zeros(4), P0=100 * np.eye(4))
-    (mu, cov, _, _), lls, _ = filterpy_run(s, zs[1], np.ones(T, bool))
-    close(res.filtered.mean[1, -100:], mu[-100:])
-    close(res.filtered.cov[1, -1], cov[-1])
-    close(res.log_likelihood[1], lls.sum(), tol=1e-9)
+    # filterpy over the last 300 steps, started from our prior at that point
+    t0 = T - 300
+    s = dict(F=F, H=H, Q=Q, R=R, x0=res.predicted.mean[1, t0].numpy(), P0=res.predicted.cov[1, t0].numpy())
+    (mu, cov, _, _), lls, _ = filterpy_run(s, zs[1, t0:], np.ones(300, bool))
+    close(res.filtered.mean[1, t0:], mu)
+    close(res.filtered.cov[1, t0:], cov)
+    close(res.log_likelihoods[1, t0:], lls)
 
 
 def test_steady_state_reuse_matches_full_recursion() -> None:
     """The filter reuses the covariances once the Riccati recursion is at a bitwise fixed point
     (no mask, no gradient); with a gradient required it recomputes every step. Same numbers."""
     rng = np.random.default_rng(5)
-    s = random_system(rng, 3, 2)
-    y = t(rng.standard_normal((4, 400, 2)))
-    args = (Gaussian(t(s["x0"]), t(s["P0"])), t(s["F"]), t(s["H"]), t(s["Q"]), t(s["R"]))
+    F, H, Q, R = constant_velocity()
+    y = t(rng.standard_normal((4, 250, 2)))
+    args = (Gaussian(torch.zeros(4, dtype=DT), 10 * torch.eye(4, dtype=DT)), t(F), t(H), t(Q), t(R))
     fast = kalman_filter(y, *args)
-    Q = t(s["Q"]).requires_grad_()
-    slow = kalman_filter(y, args[0], args[1], args[2], Q, args[4])
+    Qg = t(Q).requires_grad_()
+    slow = kalman_filter(y, args[0], args[1], args[2], Qg, args[4])
     close(fast.filtered.cov, slow.filtered.cov.detach(), tol=1e-12)
     close(fast.filtered.mean, slow.filtered.mean.detach(), tol=1e-12)
     close(fast.log_likelihoods, slow.log_likelihoods.detach(), tol=1e-12)
@@ -334,7 +340,7 @@ def test_masked_observations_do_not_affect_values_or_gradients() -> None:
     l1, l2 = loglik(y1), loglik(y2)
     (g1,) = torch.autograd.grad(l1, log_q)
     (g2,) = torch.autograd.grad(l2, log_q)
-    assert float(l1) == float(l2) and float(g1) == float(g2) and bool(torch.isfinite(g2))
+    assert float(l1.detach()) == float(l2.detach()) and float(g1) == float(g2) and bool(torch.isfinite(g2))
 
 
 def test_gradcheck_loglik_wrt_noise_parameters() -> None:
@@ -349,24 +355,26 @@ def test_gradcheck_loglik_wrt_noise_parameters() -> None:
     log_r = t([0.2]).requires_grad_()
     mu0 = t([0.1, -0.2]).requires_grad_()
 
+    weights = t(rng.standard_normal((2, T, 2)))   # a random linear functional of the smoothed means
+
     def f(log_q, log_r, mu0):
         res = kalman_filter(y, Gaussian(mu0, torch.eye(2, dtype=DT)), F, H, torch.diag(log_q.exp()),
                             torch.diag(log_r.exp()), mask=mask, validate=False)
-        return res.log_likelihood, rts_smoother(res, F).mean
+        return res.log_likelihood, (rts_smoother(res, F).mean * weights).sum()
 
     assert torch.autograd.gradcheck(f, (log_q, log_r, mu0))
 
 
 def test_gradient_ascent_learns_noise_variances() -> None:
     """Maximizing the log-likelihood over the log-variances of a simulated local-level model
-    recovers the true variances (data: 20 sequences × 200 steps)."""
+    recovers the true variances (data: 100 sequences × 40 steps)."""
     g = torch.Generator().manual_seed(0)
-    q, r, B, T = 0.5, 2.0, 20, 200
+    q, r, B, T = 0.5, 2.0, 100, 40
     level = torch.cumsum(torch.randn(B, T, generator=g, dtype=DT) * q**0.5, 1)
     y = (level + torch.randn(B, T, generator=g, dtype=DT) * r**0.5).unsqueeze(-1)
     params = torch.zeros(2, dtype=DT, requires_grad=True)
     one = torch.eye(1, dtype=DT)
-    opt = torch.optim.LBFGS([params], max_iter=50, line_search_fn="strong_wolfe")
+    opt = torch.optim.LBFGS([params], max_iter=30, line_search_fn="strong_wolfe")
 
     def closure():
         opt.zero_grad()

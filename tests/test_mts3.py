@@ -498,3 +498,16 @@ def test_evaluate_open_loop_uses_only_the_context_and_original_units():
     close(res.target, obs[:, 8:] * sd + mu)
     err = ((res.mean - res.target) ** 2).mean((0, 2))
     close(res.rmse[2], err[:3].mean().sqrt())
+
+
+def test_band_blocks_general_path_parallel_equals_sequential_and_is_causal():
+    a = mts3(H=4, bandwidth=1)
+    b = copy.deepcopy(a)
+    b.parallel_windows = False
+    obs, act, mask = data(2, 12)
+    close(prediction_loss(a, obs, act, mask), prediction_loss(b, obs, act, mask))
+    obs2 = obs.clone()
+    obs2[:, 6] += 2.0
+    with torch.no_grad():
+        m1, m2 = a(obs, act, torch.ones_like(mask))[0], a(obs2, act, torch.ones_like(mask))[0]
+    close(m1[:, :6], m2[:, :6])

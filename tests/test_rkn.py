@@ -333,6 +333,17 @@ def test_fit_filter_learns_and_keeps_best_validation_epoch():
     assert hist.valid_metric[hist.best_epoch] == min(hist.valid_metric)
     with pytest.raises(ValueError, match="crop"):
         fit_filter(model, data, data, epochs=1, crop=T + 1)
+    with pytest.raises(ValueError, match="drop_prob"):
+        fit_filter(model, data, data, epochs=1, drop_prob=1.0)
+    # frame dropout hides frames from the model during training only
+    seen_masks = []
+    probe = RecurrentFilter(ObservationEncoder(4, 2, hidden=(4,)), "gru", 4, out_dim=2)
+    orig_forward = probe.forward
+    probe.forward = lambda obs, mask=None: (seen_masks.append(mask.clone()), orig_forward(obs, mask))[1]
+    fit_filter(probe, data, data, epochs=1, batch_size=24, drop_prob=0.5, gap_prob=1.0, context_steps=3)
+    train_mask = seen_masks[0]
+    assert train_mask.float().mean() < 0.5 * data.mask.float().mean()
+    assert train_mask[:, -1].sum() == 0  # gap_prob=1: every window loses its tail
     with pytest.raises(ValueError, match="targets"):
         FilterData(obs, data.mask, target[:, :5])
 
