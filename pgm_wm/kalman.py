@@ -21,13 +21,15 @@ differentiable, so noise parameters can be learned by gradient ascent on
 :attr:`KalmanFilterResult.log_likelihood`.
 
 Speed: :func:`kalman_filter` validates the whole sequence once and then runs the unchecked
-arithmetic of :mod:`pgm_wm.gaussian`: the observation is whitened once (``_whiten``); each
-update conditions on the ``m`` whitened components one after the other (no matrix inverse);
-:math:`F\Sigma F^\top` is one small GEMM (``_sandwich_operator``). Because the covariances
-(the Riccati recursion) do not depend on the observed values, the filter runs them in a first
-pass (``_update_cov``, ``_predict_cov``) and the means in a second pass (``_update_mean``,
-``_predict_mean``): a handful of batched GEMMs per step. Covariances that are the same for
-every sequence of the batch (no mask, unbatched parameters) are computed and stored once.
+arithmetic of :mod:`pgm_wm.gaussian` (``_update_cov``/``_update_mean`` for Eq. kf-update,
+``_predict_cov``/``_predict_mean`` for Eq. kf-predict; :math:`F\Sigma F^\top` and
+:math:`H\Sigma H^\top` as one small GEMM each). Because the covariances (the Riccati
+recursion) do not depend on the observed values, the filter runs them in a first pass and the
+means in a second pass, two or three GEMMs over the whole batch per step. Covariances that are
+the same for every sequence (unbatched parameters, and no mask or the same mask for every
+sequence) are computed and stored once; without a mask and without gradients, the recursion
+stops as soon as the predicted covariance repeats bit for bit (the steady state) and the
+remaining steps reuse it, which gives exactly the same numbers.
 """
 
 from __future__ import annotations
@@ -205,13 +207,12 @@ def kalman_filter(
         check_last_dims("B", B, (n, None))
         check_last_dims("u", u, (T, B.shape[-1]))
         offsets = (B.unsqueeze(-3) @ u.unsqueeze(-1)).squeeze(-1)  # (..., T, n)
-    batch = check_same_batch(
-        ("y", "init.mean", "init.cov", "F", "H", "Q", "R"),
-        (y[..., 0, :], init.mean, init.cov, F, H, Q, R),
-        (1, 1, 2, 2, 2, 2, 2),
-    )
+    names = ["y", "init.mean", "init.cov", "F", "H", "Q", "R"]
+    tensors = [y[..., 0, :], init.mean, init.cov, F, H, Q, R]
     if offsets is not None:
-        check_same_batch(("u", "y"), (offsets[..., 0, :], y[..., 0, :]), (1, 1))
+        names.append("u")
+        tensors.append(offsets[..., 0, :])
+    batch = check_same_batch(names, tensors, (1, 1, 2, 2, 2, 2, 2, 1)[: len(names)])
     if validate:
         check_spd("Q", Q.detach(), semidefinite=True)
         check_spd("R", R.detach())
