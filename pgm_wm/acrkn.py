@@ -180,7 +180,7 @@ class NormBoundedTransition(nn.Module):
         return M / torch.clamp(norms / self.max_norm, min=1.0)[:, None, None]
 
     def dense_matrix(self, mean: Tensor) -> Tensor:
-        """:math:`A_t = \sum_k \alpha_k(z)\tilde M_k`: ``(..., 2m, 2m)``."""
+        r""":math:`A_t = \sum_k \alpha_k(z)\tilde M_k`: ``(..., 2m, 2m)``."""
         check_last_dims("mean", mean, (2 * self.latent_obs_dim,))
         return self._mix(mean, self.scaled_basis())
 

@@ -306,6 +306,8 @@ def _update_mean(
     innov = _addmm(y, mean, H.T, alpha=-1.0) if H.ndim == 2 else y - _matvec(H, mean)
     if Kt.ndim == 2:
         return _addmm(mean, innov, Kt), innov
+    if Kt.ndim == 3 and mean.ndim == 2 and innov.ndim == 2:   # one small GEMM per batch row
+        return torch.baddbmm(mean.unsqueeze(-2), innov.unsqueeze(-2), Kt).squeeze(-2), innov
     return mean + (innov.unsqueeze(-1) * Kt).sum(-2), innov
 
 

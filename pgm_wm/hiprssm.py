@@ -230,6 +230,27 @@ def make_windows(
                       sel(seq), sel(start), sel(ctx_time), hid)
 
 
+def resample_past_contexts(windows: HiPWindows, generator: torch.Generator | None = None) -> HiPWindows:
+    r"""Give every window the context set of a uniformly drawn window ``j' <= j`` of the *same*
+    trajectory (its own context included), i.e. the interactions of a random earlier window.
+
+    For trajectories whose hidden parameter is constant, every earlier window shows the same task,
+    but only the adjacent one also tells much about the *current motion*. Training on resampled
+    contexts therefore rewards a task latent that describes the trajectory (the payload) rather
+    than the recent state. Every context still lies strictly before its window
+    (``context_time < start``); ``prev_*`` fields are left unchanged. Resample for every epoch or
+    batch with a seeded ``generator``.
+    """
+    n_all = windows.n_windows
+    seq, start = windows.seq, windows.start
+    # candidate j' : same trajectory and start' <= start; draw uniformly among them
+    same = (seq[:, None] == seq[None, :]) & (start[None, :] <= start[:, None])
+    u = torch.rand(n_all, n_all, generator=generator)
+    pick = torch.where(same, u, torch.full_like(u, -1.0)).argmax(1)
+    return replace(windows, context=windows.context[pick], context_mask=windows.context_mask[pick],
+                   context_time=windows.context_time[pick])
+
+
 # ============================================================================= task transformations
 class LinearTaskTransform(nn.Module):
     r"""Linear task term :math:`C l`, Eq. (hip-predict): the cause

@@ -26,6 +26,7 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 import torch
 from torch import Tensor, nn
+from tqdm.auto import tqdm
 
 from ._checks import check_mask, check_tensor
 from .metrics import gaussian_nll, rmse
@@ -192,8 +193,6 @@ def fit(
     n_batches = (n + batch_size - 1) // batch_size
     if max_batches is not None:
         n_batches = min(n_batches, max_batches)
-    from tqdm.auto import tqdm
-
     t_start = time.perf_counter()
     bar = tqdm(range(epochs), desc=desc, disable=not progress, leave=True)
     for _epoch in bar:
@@ -327,9 +326,10 @@ def multistep_predict(
 
 
 def sliding_windows(x: Tensor, length: int, stride: int) -> Tensor:
-    """Cut ``x: (B, T, ...)`` into windows ``(B * n_windows, length, ...)`` starting every ``stride``
-    steps (windows of sequence 0 first)."""
-    check_tensor("x", x, 2) if torch.is_floating_point(x) else None
+    """Cut ``x: (B, T, ...)`` (any dtype, e.g. a mask) into windows ``(B * n_windows, length, ...)``
+    starting every ``stride`` steps (windows of sequence 0 first)."""
+    if not isinstance(x, Tensor):
+        raise ValueError(f"x: expected a torch.Tensor, got {type(x).__name__}")
     if x.ndim < 2:
         raise ValueError(f"x: expected (B, T, ...), got shape {tuple(x.shape)}")
     T = x.shape[1]

@@ -33,6 +33,7 @@ from pgm_wm.hiprssm import (
     latent_pca,
     make_windows,
     predict_windows,
+    resample_past_contexts,
     window_rmse,
 )
 from pgm_wm.kalman import kalman_filter
@@ -364,6 +365,24 @@ def test_windows_never_put_the_window_or_its_future_into_the_context(n, k, extra
     act2[:, t0:] -= 100.0
     w2 = make_windows(obs2, act2, k, valid, include_first=include_first)
     torch.testing.assert_close(w2.context[j], w.context[j])
+
+
+def test_resampled_contexts_come_from_earlier_windows_of_the_same_trajectory():
+    obs, act, valid = seq_data(3, 40, p_valid=0.9)
+    w = make_windows(obs, act, 5, valid)
+    r = resample_past_contexts(w, torch.Generator().manual_seed(0))
+    picked_other = 0
+    for i in range(w.n_windows):
+        # the resampled set is the (unchanged) context of a window j' of the same trajectory, j' <= j
+        cands = [j for j in range(w.n_windows) if w.seq[j] == w.seq[i] and w.start[j] <= w.start[i]
+                 and torch.equal(w.context[j], r.context[i]) and torch.equal(w.context_mask[j], r.context_mask[i])]
+        assert cands, i
+        picked_other += int(cands[-1] != i)
+        present = r.context_mask[i]
+        assert bool((r.context_time[i][present] < w.start[i]).all())
+    assert picked_other > w.n_windows // 3           # most windows got an earlier context
+    torch.testing.assert_close(r.obs, w.obs)
+    assert not torch.equal(r.context, resample_past_contexts(w, torch.Generator().manual_seed(1)).context)
 
 
 def test_context_features_standardize_the_difference_and_mask_pairs():

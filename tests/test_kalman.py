@@ -323,6 +323,30 @@ def test_shared_covariance_is_a_broadcast_view_with_full_shape() -> None:
     close(res.filtered.mean[3], one.filtered.mean, tol=1e-13)
 
 
+def test_per_sequence_masks_and_batched_controls_equal_loop() -> None:
+    """Shared parameters, a different mask per sequence (covariances become per-sequence), a
+    control input batched while y is not, and the same mask for all sequences (shared path)."""
+    rng = np.random.default_rng(6)
+    s = random_system(rng, 3, 2, k=1)
+    zs = rng.standard_normal((5, 11, 2))
+    valid = rng.random((5, 11)) > 0.3
+    us = rng.standard_normal((5, 11, 1))
+    args = (Gaussian(t(s["x0"]), t(s["P0"])), t(s["F"]), t(s["H"]), t(s["Q"]), t(s["R"]))
+    res = kalman_filter(t(zs), *args, mask=torch.as_tensor(valid), B=t(s["B"]), u=t(us))
+    same = kalman_filter(t(zs), *args, mask=torch.as_tensor(np.broadcast_to(valid[:1], valid.shape).copy()))
+    ctl = kalman_filter(t(zs[0]), *args, B=t(s["B"]), u=t(us))          # y unbatched, u batched
+    assert ctl.filtered.mean.shape == (5, 11, 3)
+    for b in range(5):
+        rb = ours(s, zs[b], valid[b], us[b])
+        close(res.filtered.mean[b], rb.filtered.mean, tol=1e-12)
+        close(res.filtered.cov[b], rb.filtered.cov, tol=1e-12)
+        close(res.log_likelihoods[b], rb.log_likelihoods, tol=1e-12)
+        r0 = ours(s, zs[b], valid[0])
+        close(same.filtered.mean[b], r0.filtered.mean, tol=1e-12)
+        close(same.log_likelihoods[b], r0.log_likelihoods, tol=1e-12)
+        close(ctl.filtered.mean[b], ours(s, zs[0], np.ones(11, bool), us[b]).filtered.mean, tol=1e-12)
+
+
 def test_masked_observations_do_not_affect_values_or_gradients() -> None:
     rng = np.random.default_rng(3)
     s = random_system(rng, 2, 2)

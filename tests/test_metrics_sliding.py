@@ -37,7 +37,7 @@ def test_sliding_rmse_and_nll_match_numpy_loops(seed, B, T, W, use_mask):
     target = rng.normal(size=(B, T, 3))
     var = rng.uniform(0.1, 2.0, size=(B, T, 3))
     mask = rng.uniform(size=(B, T)) > 0.3 if use_mask else np.ones((B, T), dtype=bool)
-    mask[:, 0] = True  # every window then selects something
+    mask[0, :] = True  # every time step (hence every window) selects something
     w = np.broadcast_to(mask[..., None], pred.shape).astype(float)
     tm = torch.as_tensor(mask) if use_mask else None
     got_r = sliding_window_rmse(torch.as_tensor(pred), torch.as_tensor(target), W, tm).numpy()

@@ -511,3 +511,18 @@ def test_band_blocks_general_path_parallel_equals_sequential_and_is_causal():
     with torch.no_grad():
         m1, m2 = a(obs, act, torch.ones_like(mask))[0], a(obs2, act, torch.ones_like(mask))[0]
     close(m1[:, :6], m2[:, :6])
+
+
+def test_evaluate_open_loop_reports_divergence_as_inf():
+    from pgm_wm.mts3 import evaluate_open_loop
+
+    def diverging(o, a, mk):  # finite for 5 steps, then NaN
+        mean = torch.zeros(o.shape, dtype=o.dtype)
+        mean[:, 8:] = float("nan")
+        return mean, torch.ones_like(mean)
+
+    obs, act, _ = data(2, 16)
+    one = torch.ones(DO, dtype=DT)
+    res = evaluate_open_loop(diverging, obs, act, 4, 0 * one, one, 3)
+    assert torch.isfinite(res.rmse[:4]).all() and torch.isfinite(res.nll[:4]).all()
+    assert torch.isinf(res.rmse[4:]).all() and torch.isinf(res.nll[4:]).all()
