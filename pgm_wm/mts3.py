@@ -282,6 +282,16 @@ class TaskSSM(nn.Module):
     this started better than a slowly relaxing :math:`X` with radius 0.9), :math:`Y = 0.2 I`,
     :math:`C_i = 0.2 I`, :math:`S = 0.1`, initial belief :math:`\mathcal N(0, 10 I)` with zero side
     covariance.
+
+    Args:
+        obs_dim, action_dim: sizes of :math:`o` and :math:`a`. latent_dim: :math:`m` (task state ``2m``).
+        window: :math:`H`, fast steps per slow step. hidden: hidden sizes of both set encoders.
+        bandwidth: band half-width of the blocks of :math:`X, Y, C_i` (0 = diagonal, exact).
+        use_actions: with an abstract action (False: the "no action abstraction" ablation).
+        conditioned: has a level above it (gets :math:`C_i`).
+        init_var, trans_var_init, X_init, Y_init, C_init: initial values (see above).
+        decoupled: off-diagonal blocks fixed at zero (the diagonal-covariance ablation).
+        min_var: variance floor of the set encoders.
     """
 
     def __init__(

@@ -516,7 +516,7 @@ def test_band_blocks_general_path_parallel_equals_sequential_and_is_causal():
 def test_evaluate_open_loop_reports_divergence_as_inf():
     from pgm_wm.mts3 import evaluate_open_loop
 
-    def diverging(o, a, mk):  # finite for 5 steps, then NaN
+    def diverging(o, a, mk):  # NaN from output index 8 on = horizon index 5 (context 4)
         mean = torch.zeros(o.shape, dtype=o.dtype)
         mean[:, 8:] = float("nan")
         return mean, torch.ones_like(mean)
@@ -524,5 +524,5 @@ def test_evaluate_open_loop_reports_divergence_as_inf():
     obs, act, _ = data(2, 16)
     one = torch.ones(DO, dtype=DT)
     res = evaluate_open_loop(diverging, obs, act, 4, 0 * one, one, 3)
-    assert torch.isfinite(res.rmse[:4]).all() and torch.isfinite(res.nll[:4]).all()
-    assert torch.isinf(res.rmse[4:]).all() and torch.isinf(res.nll[4:]).all()
+    assert torch.isfinite(res.rmse[:5]).all() and torch.isfinite(res.nll[:5]).all()
+    assert torch.isinf(res.rmse[5:]).all() and torch.isinf(res.nll[5:]).all()
