@@ -48,6 +48,7 @@ from torch import Tensor, nn
 
 from ._checks import as_tensor, check_last_dims, check_mask, check_positive, check_tensor
 from .factorized import FactorizedBelief, block_inverse
+from .layers import mlp
 
 __all__ = [
     "bayesian_aggregation",
@@ -55,7 +56,6 @@ __all__ = [
     "precision_weights",
     "masked_mean_pool",
     "masked_max_pool",
-    "mlp",
     "positive_variance",
     "SetEncoder",
     "BayesianContextEncoder",
@@ -279,16 +279,6 @@ def masked_max_pool(h: Tensor, mask: Tensor | None = None) -> Tensor:
 
 
 # ----------------------------------------------------------------------------- learned modules
-def mlp(in_dim: int, hidden: Sequence[int], activation: type[nn.Module] = nn.ReLU) -> nn.Sequential:
-    """``Linear -> activation`` for each width in ``hidden`` (output size ``hidden[-1]``)."""
-    layers: list[nn.Module] = []
-    prev = in_dim
-    for width in hidden:
-        layers += [nn.Linear(prev, width), activation()]
-        prev = width
-    return nn.Sequential(*layers)
-
-
 def positive_variance(raw: Tensor, min_var: float) -> Tensor:
     r"""Map an unconstrained network output to a variance: :math:`\mathrm{softplus}(x) + v_{min}`.
 
@@ -324,7 +314,7 @@ class SetEncoder(nn.Module):
         if min_var <= 0:
             raise ValueError(f"min_var: must be > 0, got {min_var}")
         self.in_dim, self.latent_dim, self.min_var = in_dim, latent_dim, float(min_var)
-        self.trunk = mlp(in_dim, hidden, activation)
+        self.trunk = mlp(in_dim, hidden, activation=activation)
         self.enc_r = nn.Linear(hidden[-1], latent_dim)
         self.enc_var = nn.Linear(hidden[-1], latent_dim)
 
@@ -402,8 +392,8 @@ class DeepSetContextEncoder(nn.Module):
         if min_var <= 0:
             raise ValueError(f"min_var: must be > 0, got {min_var}")
         self.in_dim, self.latent_dim, self.pool, self.min_var = in_dim, latent_dim, pool, float(min_var)
-        self.trunk = mlp(in_dim, hidden, activation)
-        self.head = mlp(hidden[-1], head_hidden, activation) if head_hidden else nn.Identity()
+        self.trunk = mlp(in_dim, hidden, activation=activation)
+        self.head = mlp(hidden[-1], head_hidden, activation=activation) if head_hidden else nn.Identity()
         out = head_hidden[-1] if head_hidden else hidden[-1]
         self.head_mean = nn.Linear(out, latent_dim)
         self.head_var = nn.Linear(out, latent_dim)

@@ -10,7 +10,7 @@ Gaussian belief over the parameter and is trained by the Gaussian negative log-l
   (:func:`normalized_transition_features` for a dataset split, normalized with training stats);
 * :class:`ContextSetSampler` draws batches of padded sets of random size (``mask`` marks
   the present elements), optionally corrupting a random fraction of the elements;
-* :func:`gaussian_nll`, :func:`fit_set_model`, :func:`evaluate_set_model`: loss, training loop
+* :func:`set_nll`, :func:`fit_set_model`, :func:`evaluate_set_model`: loss, training loop
   with validation-based model selection, and metrics.
 
 The HiP-RSSM chapter reuses the sampler idea with the context taken from the recent past.
@@ -28,6 +28,7 @@ import torch
 from torch import Tensor, nn
 
 from ._checks import check_last_dims, check_tensor
+from .metrics import gaussian_nll
 
 __all__ = [
     "transition_features",
@@ -35,13 +36,11 @@ __all__ = [
     "ContextBatch",
     "ContextSetSampler",
     "corrupt_elements",
-    "gaussian_nll",
+    "set_nll",
     "fit_set_model",
     "evaluate_set_model",
     "FitResult",
 ]
-
-_LOG_2PI = math.log(2.0 * math.pi)
 
 
 def transition_features(obs: Tensor, actions: Tensor) -> Tensor:
@@ -219,16 +218,15 @@ class ContextSetSampler:
         return ContextBatch(x, mask, self.targets[seq], seq, corrupted & mask, level * mask)
 
 
-def gaussian_nll(y: Tensor, mean: Tensor, var: Tensor) -> Tensor:
-    r"""Gaussian negative log-likelihood with diagonal covariance, summed over the last dim,
+def set_nll(y: Tensor, mean: Tensor, var: Tensor) -> Tensor:
+    r"""Gaussian negative log-likelihood of each set's target, summed over its ``k`` dimensions,
     Eq. (ba-nll): :math:`\tfrac12\sum_i[\log 2\pi\sigma_i + (y_i-\mu_i)^2/\sigma_i]`.
 
-    Shapes ``(..., k)`` -> ``(...)``; ``var`` must be positive.
+    Shapes ``(..., k)`` -> ``(...)``; ``var`` must be positive. It is ``k`` times the
+    per-dimension average :func:`pgm_wm.metrics.gaussian_nll`.
     """
     check_tensor("y", y, 1)
-    check_last_dims("mean", mean, (y.shape[-1],))
-    check_last_dims("var", var, (y.shape[-1],))
-    return 0.5 * (_LOG_2PI + var.log() + (y - mean) ** 2 / var).sum(-1)
+    return gaussian_nll(mean, var, y, dim=-1) * y.shape[-1]
 
 
 @dataclass
@@ -279,7 +277,7 @@ def fit_set_model(
         scale = torch.rand(batch_size, n_max, generator=gen) * corrupt_scale_max
         batch = sampler.sample(batch_size, n_max, n_min, gen, frac, scale)
         mean, var = model(batch.x, batch.mask)
-        loss = gaussian_nll(batch.y, mean, var).mean()
+        loss = set_nll(batch.y, mean, var).mean()
         opt.zero_grad()
         loss.backward()
         nn.utils.clip_grad_norm_(model.parameters(), clip)
@@ -313,5 +311,5 @@ def evaluate_set_model(model: nn.Module, batch: ContextBatch, target_scale: floa
     model.train(was_training)
     k = batch.y.shape[-1]
     rmse = float(((mean - batch.y) ** 2).mean().sqrt()) * target_scale
-    nll = float(gaussian_nll(batch.y, mean, var).mean()) + k * math.log(target_scale)
+    nll = float(set_nll(batch.y, mean, var).mean()) + k * math.log(target_scale)
     return {"rmse": rmse, "nll": nll, "std": float(var.sqrt().mean()) * target_scale}

@@ -32,6 +32,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ._checks import check_last_dims, check_mask, check_tensor
+from .layers import mlp
 from .factorized import FactorizedBelief, factorized_predict_from_matrix, factorized_update
 
 __all__ = [
@@ -51,17 +52,6 @@ CausesFn = Callable[[int, FactorizedBelief], Sequence[FactorizedBelief]]
 def elup1(x: Tensor) -> Tensor:
     """``elu(x) + 1``: a smooth map onto :math:`(0, \\infty)` used for all learned variances."""
     return F.elu(x) + 1.0
-
-
-def mlp(in_dim: int, hidden: Sequence[int], out_dim: int, activation: type[nn.Module] = nn.ReLU) -> nn.Sequential:
-    """A plain multilayer perceptron ``in_dim -> hidden... -> out_dim`` (no output activation)."""
-    layers: list[nn.Module] = []
-    d = in_dim
-    for h in hidden:
-        layers += [nn.Linear(d, h), activation()]
-        d = h
-    layers.append(nn.Linear(d, out_dim))
-    return nn.Sequential(*layers)
 
 
 def band_mask(m: int, bandwidth: int) -> Tensor:

@@ -30,7 +30,7 @@ from pgm_wm.context import (
     corrupt_elements,
     evaluate_set_model,
     fit_set_model,
-    gaussian_nll,
+    set_nll,
     transition_features,
 )
 from pgm_wm.factorized import FactorizedBelief, factorized_update
@@ -418,12 +418,12 @@ def test_transition_features_layout():
         transition_features(obs, torch.ones(1, 3, 2))
 
 
-def test_gaussian_nll_matches_torch_distribution():
+def test_set_nll_matches_torch_distribution():
     gen = torch.Generator().manual_seed(0)
     y, mu = torch.randn(5, 3, generator=gen), torch.randn(5, 3, generator=gen)
     var = torch.rand(5, 3, generator=gen) + 0.1
     ref = -torch.distributions.Normal(mu, var.sqrt()).log_prob(y).sum(-1)
-    torch.testing.assert_close(gaussian_nll(y, mu, var), ref)
+    torch.testing.assert_close(set_nll(y, mu, var), ref)
 
 
 def test_bayesian_encoder_learns_to_downweight_noisy_elements():
