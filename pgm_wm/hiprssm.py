@@ -11,8 +11,9 @@ ac-RKN of Chapter 4 plus **one more independent cause** in the predict step:
    (:class:`pgm_wm.aggregation.BayesianContextEncoder`, Eq. ba-update). The ablation replaces
    it by :class:`RecurrentContextEncoder`, an RKN run over the context in time order.
 2. **Task-conditional predict**, Eq. (hip-predict). :math:`z_t`, :math:`l` and the known action
-   are independent causes of :math:`z_{t+1}` (a V-structure at the unobserved :math:`z_{t+1}`),
-   so Eq. (gauss-marginal) gives
+   are the parents of :math:`z_{t+1}` (a V-structure at the unobserved :math:`z_{t+1}`). Treating
+   the state belief and the task belief as independent (an approximation: the task is not
+   refined by the window's own observations), Eq. (gauss-marginal) gives
 
    .. math:: z^-_{t+1} = A_t z^+_t + b(a_t) + C\mu_l,\qquad
              \Sigma^-_{t+1} = A_t\Sigma^+_tA_t^\top + C\operatorname{diag}(\sigma_l)C^\top + Q.
@@ -32,7 +33,9 @@ non-overlapping windows of ``k`` steps; the context of window :math:`j` is the s
 window's context is strictly before the window's first step. The state filter restarts from
 its initial belief in every window; only the task carries information across windows.
 Test-time inference over a long trajectory (:func:`infer_trajectory`) runs the same model
-window by window.
+window by window. :func:`resample_past_contexts` swaps contexts for those of random earlier
+windows of the same trajectory (a training variant); :func:`evaluate_windows` computes the
+chapter's one-step / open-loop RMSEs, with and without hidden observations, in original units.
 """
 
 from __future__ import annotations
@@ -55,6 +58,7 @@ __all__ = [
     "context_features",
     "HiPWindows",
     "make_windows",
+    "resample_past_contexts",
     "LinearTaskTransform",
     "NonlinearTaskTransform",
     "RecurrentContextEncoder",

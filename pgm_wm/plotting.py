@@ -243,7 +243,7 @@ def plot_graphical_model(
 
     for x0, y0, w, h, label in plates:
         ax.add_patch(Rectangle((x0, y0), w, h, fill=False, lw=1, ls="--", ec="0.4"))
-        ax.text(x0 + w - 0.05, y0 + 0.05, label, ha="right", va="bottom", fontsize=9, color="0.3")
+        ax.text(x0, y0 + h + 0.05, label, ha="left", va="bottom", fontsize=9, color="0.3")
     for name, (x, y, label, kind) in nodes.items():
         if kind not in ("latent", "observed", "known"):
             raise ValueError(f"nodes: kind of {name!r} must be latent/observed/known, got {kind!r}")
@@ -265,6 +265,8 @@ def plot_graphical_model(
                                      arrowstyle="-|>", mutation_scale=12, lw=1.2, color="k", zorder=1))
     xs = [v[0] for v in nodes.values()]
     ys = [v[1] for v in nodes.values()]
+    xs += [x0 for x0, *_ in plates] + [x0 + w for x0, _, w, *_ in plates]
+    ys += [y0 + h + 0.3 for _, y0, _, h, _ in plates]
     ax.set_xlim(min(xs) - 2 * radius, max(xs) + 2 * radius)
     ax.set_ylim(min(ys) - 2 * radius, max(ys) + 2 * radius)
     ax.set_aspect("equal")
@@ -321,7 +323,7 @@ def plot_task_over_time(
         raise ValueError(f"axes: need 2 axes, got {len(axes)}")
     step = float(tw[1] - tw[0]) if tw.size > 1 else 1.0
     edges = np.append(tw, tw[-1] + step)
-    axes[0].stairs(lat, edges, color="C0", lw=2, label=latent_label)
+    axes[0].stairs(lat, edges, baseline=None, color="C0", lw=2, label=latent_label)
     if latent_std is not None:
         sd = to_numpy(latent_std)
         axes[0].stairs(lat + 2 * sd, edges, baseline=lat - 2 * sd, fill=True, color="C0", alpha=0.2,
