@@ -50,6 +50,7 @@ from .factorized import FactorizedBelief, factorized_predict_from_matrix, known_
 from .rkn import RKN, FilterOutput, LocallyLinearTransition, mlp
 
 __all__ = [
+    "check_sequences",
     "LinearControl",
     "LocallyLinearControl",
     "MLPControl",
@@ -284,7 +285,7 @@ class DifferenceReadout(nn.Module):
         return torch.stack(means, 1), torch.stack(vars_, 1)
 
 
-def _check_sequences(obs: Tensor, actions: Tensor | None, mask: Tensor | None,
+def check_sequences(obs: Tensor, actions: Tensor | None, mask: Tensor | None,
                      obs_dim: int | None = None, action_dim: int | None = None) -> Tensor | None:
     """Check ``obs: (B, T, do)``, ``actions: (B, T, da)``, ``mask: (B, T)``; return the bool mask."""
     check_tensor("obs", obs, 3)
@@ -373,7 +374,7 @@ class AcRKN(nn.Module):
         ``extra_causes_fn(t, posterior_t)`` returns further independent causes for the same
         predict step (Chapter 5 adds a latent task there).
         """
-        mask = _check_sequences(obs, actions, mask)
+        mask = check_sequences(obs, actions, mask)
         if mask is not None:
             obs = torch.where(mask[..., None], obs, torch.zeros((), dtype=obs.dtype))
         w, w_var = self.rkn.encoder(obs)
@@ -404,7 +405,7 @@ class AcRKN(nn.Module):
 
         Uses only observations with ``mask`` True at indices ``<= t`` and actions ``<= t``.
         """
-        mask = _check_sequences(obs, actions, mask, self.obs_dim)
+        mask = check_sequences(obs, actions, mask, self.obs_dim)
         out = self.filter(obs, actions, mask, extra_causes_fn)
         return self.decode_predictions(out, obs, mask)
 
@@ -441,7 +442,7 @@ def inverse_dynamics(
     to the predict step *after* it was decoded (so :math:`\\hat a_t` never sees :math:`a_t`);
     without it the filter has no control term.
     """
-    _check_sequences(obs, actions, None, model.obs_dim)
+    check_sequences(obs, actions, None, model.obs_dim)
     if obs.shape[1] < 2:
         raise ValueError(f"obs: need at least 2 time steps, got {obs.shape[1]}")
     out = model.filter(obs, actions if action_feedback else None, None)

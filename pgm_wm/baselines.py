@@ -28,7 +28,7 @@ from typing import Sequence
 import torch
 from torch import Tensor, nn
 
-from .acrkn import DifferenceReadout, _check_sequences
+from .acrkn import DifferenceReadout, check_sequences
 from .factorized import FactorizedBelief, factorized_update
 from .rkn import BeliefDecoder, LocallyLinearTransition, ObservationEncoder, elup1, mlp
 
@@ -66,7 +66,7 @@ class FeedbackModel(nn.Module):
 
     def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """``(mean, var)`` each ``(B, T, do)``; index ``t`` predicts ``obs[:, t + 1]``."""
-        mask = _check_sequences(obs, actions, mask, self.obs_dim, self.action_dim)
+        mask = check_sequences(obs, actions, mask, self.obs_dim, self.action_dim)
         B, T = obs.shape[:2]
         if mask is None:
             mask = torch.ones(B, T, dtype=torch.bool, device=obs.device)
@@ -282,7 +282,7 @@ class TransformerBaseline(nn.Module):
 
     def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """``(mean, var)`` each ``(B, T, do)``; index ``t`` predicts ``obs[:, t + 1]``."""
-        mask = _check_sequences(obs, actions, mask, self.obs_dim, self.action_dim)
+        mask = check_sequences(obs, actions, mask, self.obs_dim, self.action_dim)
         B, T = obs.shape[:2]
         flag = (torch.ones(B, T, 1, dtype=obs.dtype, device=obs.device) if mask is None
                 else mask[..., None].to(obs.dtype))

@@ -73,7 +73,7 @@ import torch
 from torch import Tensor, nn
 
 from ._checks import check_last_dims
-from .acrkn import AcRKN, LinearControl, MLPControl, ZeroControl, _check_sequences
+from .acrkn import AcRKN, LinearControl, MLPControl, ZeroControl, check_sequences
 from .aggregation import BayesianContextEncoder, SetEncoder, set_condition
 from .factorized import FactorizedBelief, factorized_predict, linear_cause
 from .metrics import denormalize, denormalize_var, sliding_window_nll, sliding_window_rmse
@@ -562,7 +562,7 @@ class _Prepared:
 
 def _prepare(obs: Tensor, actions: Tensor, mask: Tensor | None, multiple: int,
              obs_dim: int, action_dim: int) -> _Prepared:
-    mask = _check_sequences(obs, actions, mask, obs_dim, action_dim)
+    mask = check_sequences(obs, actions, mask, obs_dim, action_dim)
     B, T = obs.shape[:2]
     observed = torch.ones(B, T, dtype=torch.bool, device=obs.device) if mask is None else mask
     obs_in = torch.where(observed[..., None], obs, torch.zeros((), dtype=obs.dtype, device=obs.device))
