@@ -28,6 +28,7 @@ from pgm_wm.hiprssm import (
     context_features,
     eval_masks,
     evaluate_windows,
+    floor_variance,
     hip_loss_fn,
     infer_trajectory,
     latent_pca,
@@ -486,6 +487,16 @@ def test_hip_loss_reaches_every_part_of_the_model():
             assert any(gr is not None and float(gr.abs().sum()) > 0 for gr in grads), type(part).__name__
 
 
+def test_floor_variance_only_lifts_tiny_variances():
+    model = lambda x: (x, x.abs())  # noqa: E731
+    x = torch.tensor([0.0, -1e-12, 0.5, -2.0], dtype=DT)
+    mean, var = floor_variance(model, 1e-8)(x)
+    assert torch.equal(mean, x)
+    assert torch.equal(var, torch.tensor([1e-8, 1e-8, 0.5, 2.0], dtype=DT))
+    with pytest.raises(ValueError, match="min_var"):
+        floor_variance(model, 0.0)
+
+
 def test_latent_pca_matches_numpy_svd():
     g = torch.Generator().manual_seed(0)
     x = torch.randn(40, 5, generator=g, dtype=DT) @ torch.randn(5, 5, generator=g, dtype=DT)
@@ -528,3 +539,34 @@ def test_bad_inputs_raise_value_error():
         eval_masks(3, 5, 1.5)
     with pytest.raises(ValueError, match="n_components"):
         latent_pca(torch.randn(4, 3), 5)
+
+
+# ================================================================ chapter-5 plot helpers (smoke + bad input)
+
+def test_chapter5_plot_helpers():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pgm_wm.plotting import plot_graphical_model, plot_latent_scatter, plot_task_over_time
+
+    fig, axes = plt.subplots(1, 3)
+    nodes = {"l": (0.0, 1.0, "$l$", "latent"), "r": (1.0, 1.0, "$r$", "observed"), "a": (0.0, 0.0, "$a$", "known")}
+    plot_graphical_model(axes[0], nodes, [("l", "r"), ("a", "r")], plates=[(0.5, 0.5, 1.0, 1.0, "set")])
+    with pytest.raises(ValueError, match="nodes"):
+        plot_graphical_model(axes[0], {"x": (0, 0, "x", "weird")}, [])
+    with pytest.raises(ValueError, match="edges"):
+        plot_graphical_model(axes[0], nodes, [("l", "nope")])
+    xy, vals = np.random.default_rng(0).normal(size=(10, 2)), np.linspace(0, 1, 10)
+    plot_latent_scatter(axes[1], xy, vals, markers=np.array(["a"] * 5 + ["b"] * 5))
+    assert sum(len(c.get_offsets()) for c in axes[1].collections) == 10
+    with pytest.raises(ValueError, match="values"):
+        plot_latent_scatter(axes[1], xy, vals[:3])
+    fig2, ax2 = plt.subplots(2, 1)
+    plot_task_over_time(ax2, np.arange(4) * 0.5, np.arange(4.0), np.arange(20) * 0.1,
+                        np.repeat([0.0, 1.0], 10), latent_std=np.ones(4))
+    assert len(ax2[1].lines) >= 2  # truth + one switch marker
+    with pytest.raises(ValueError, match="latent"):
+        plot_task_over_time(ax2, np.arange(4), np.arange(3.0), np.arange(5), np.zeros(5))
+    plt.close("all")
