@@ -379,22 +379,34 @@ def rts_smoother(result: KalmanFilterResult, F: Tensor) -> Gaussian:
     check_last_dims("F", F, (n, n))
     T = f.mean.shape[-2]
     Fs = F.unsqueeze(-3)  # broadcast over time
+    # Covariances shared by the batch (broadcast views from kalman_filter) are processed once.
+    f_cov, p_cov = _compact(f.cov, 3), _compact(p.cov, 3)
     # All gains at once (they depend only on the filter output): G_t = Σ_t Fᵀ (Σ⁻_{t+1})⁻¹.
-    P_f = f.cov[..., :-1, :, :]
-    P_p = p.cov[..., 1:, :, :]
+    P_f = f_cov[..., :-1, :, :]
+    P_p = p_cov[..., 1:, :, :]
     chol, info = torch.linalg.cholesky_ex(_sym(P_p))
     if bool((info != 0).any()):
         raise ValueError("result: a predicted covariance is not positive definite (Q too small?)")
     G = torch.cholesky_solve(Fs @ P_f.transpose(-1, -2), chol).transpose(-1, -2)  # (..., T-1, n, n)
     Gt = G.transpose(-1, -2)
-    m_s, c_s = f.mean[..., T - 1, :], f.cov[..., T - 1, :, :]
+    m_s, c_s = f.mean[..., T - 1, :], f_cov[..., T - 1, :, :]
     means, covs = [m_s], [c_s]
     for t in range(T - 2, -1, -1):
         g = G[..., t, :, :]
         m_s = f.mean[..., t, :] + (g @ (m_s - p.mean[..., t + 1, :]).unsqueeze(-1)).squeeze(-1)
-        c_s = _sym(f.cov[..., t, :, :] + g @ (c_s - p.cov[..., t + 1, :, :]) @ Gt[..., t, :, :])
+        c_s = _sym(f_cov[..., t, :, :] + g @ (c_s - p_cov[..., t + 1, :, :]) @ Gt[..., t, :, :])
         means.append(m_s)
         covs.append(c_s)
     means.reverse()
     covs.reverse()
-    return Gaussian(torch.stack(means, dim=-2), torch.stack(covs, dim=-3))
+    mean = _stack(means, 1)
+    return _stack_gaussian(mean, covs)
+
+
+def _compact(x: Tensor, k: int) -> Tensor:
+    """Collapse leading dimensions of ``x`` that are broadcast views (stride 0) to size 1,
+    keeping the last ``k`` dimensions; the result broadcasts back to ``x``'s shape."""
+    for d in range(x.ndim - k):
+        if x.stride(d) == 0 and x.shape[d] > 1:
+            x = x.narrow(d, 0, 1)
+    return x
