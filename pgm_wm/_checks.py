@@ -110,6 +110,7 @@ def check_spd(name: str, cov: Tensor, semidefinite: bool = False) -> Tensor:
     check_tensor(name, cov, min_ndim=2)
     if cov.shape[-1] != cov.shape[-2]:
         raise ValueError(f"{name}: expected square matrices (..., n, n), got {tuple(cov.shape)}")
+    original, cov = cov, cov.detach()  # a check, not part of the computation graph
     if not bool(torch.isfinite(cov).all()):
         raise ValueError(f"{name}: contains NaN or infinite values")
     scale = cov.abs().amax(dim=(-1, -2), keepdim=True).clamp_min(1e-300)
@@ -127,7 +128,7 @@ def check_spd(name: str, cov: Tensor, semidefinite: bool = False) -> Tensor:
             _, info = torch.linalg.cholesky_ex(sym)
             if bool((info != 0).any()):
                 raise ValueError(f"{name}: matrix is not positive definite")
-    return cov
+    return original
 
 
 def check_mask(name: str, mask: object, shape: Sequence[int]) -> Tensor:
