@@ -37,7 +37,6 @@ from pgm_wm.factorized import FactorizedBelief, factorized_update
 from pgm_wm.gaussian import Gaussian, condition
 from pgm_wm.kalman import kf_update
 
-torch.set_num_threads(1)
 D64 = torch.float64
 SETTINGS = settings(max_examples=25, deadline=None)
 

@@ -22,15 +22,6 @@ from pgm_wm.kalman import kf_predict, kf_update
 D = torch.float64
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Many tiny tensor operations: one intra-op thread is much faster on a busy machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def random_belief(gen: torch.Generator, batch: tuple[int, ...], m: int, dtype=D) -> FactorizedBelief:
     """A random valid factorized belief: |σs| < sqrt(σu σl)."""
     su = 0.1 + 3.0 * torch.rand(*batch, m, generator=gen, dtype=dtype)

@@ -29,13 +29,6 @@ from pgm_wm.gaussian import (
 DT = torch.float64
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Tiny matrices: intra-op threads only add synchronization cost (10x slower on 2 busy cores)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 SETTINGS = settings(max_examples=30, deadline=None)
 
 

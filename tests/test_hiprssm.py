@@ -40,7 +40,6 @@ from pgm_wm.hiprssm import (
 from pgm_wm.kalman import kalman_filter
 from pgm_wm.rkn import BeliefDecoder, LocallyLinearTransition, ObservationEncoder
 
-torch.set_num_threads(1)
 DT = torch.float64
 SETTINGS = settings(max_examples=15, deadline=None)
 

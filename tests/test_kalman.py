@@ -27,13 +27,6 @@ DT = torch.float64
 TOL = 1e-8
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Tiny matrices: intra-op threads only add synchronization cost (10x slower on 2 busy cores)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 SETTINGS = settings(max_examples=25, deadline=None)
 
 

@@ -12,7 +12,6 @@ from hypothesis import strategies as st
 
 from pgm_wm.metrics import gaussian_nll, rmse, sliding_window_nll, sliding_window_rmse
 
-torch.set_num_threads(1)
 
 
 def numpy_sliding(per_entry: np.ndarray, weights: np.ndarray, window: int) -> np.ndarray:

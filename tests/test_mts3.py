@@ -38,7 +38,6 @@ from pgm_wm.mts3 import (
 from pgm_wm.rkn import LocallyLinearTransition
 from pgm_wm.training import prediction_loss
 
-torch.set_num_threads(1)
 DT = torch.float64
 DO, DA, M = 3, 2, 4
 

@@ -35,15 +35,6 @@ from pgm_wm.rnn_filters import (
 D = torch.float64
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Many tiny tensor operations: one intra-op thread is much faster on a busy machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def small_rkn(m=3, K=4, bw=1, obs_dim=5, dtype=D, diagonal_only=False, seed=0) -> RKN:
     torch.manual_seed(seed)
     enc = ObservationEncoder(obs_dim, m, hidden=(8,))
