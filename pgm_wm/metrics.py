@@ -83,15 +83,18 @@ def rmse(pred: Tensor, target: Tensor, mask: Tensor | None = None, dim: Dims = N
 def gaussian_nll(mean: Tensor, var: Tensor, target: Tensor, mask: Tensor | None = None, dim: Dims = None) -> Tensor:
     r"""Per-dimension average Gaussian negative log-likelihood, Eq. (metric-nll), with
     :math:`\tfrac12\log 2\pi` included. ``var`` must be positive. Same masks/dims as :func:`rmse`."""
+    return _reduce(_nll_terms(mean, var, target), _weights("mask", mask, mean), dim)
+
+
+def _nll_terms(mean: Tensor, var: Tensor, target: Tensor) -> Tensor:
+    """Validated elementwise terms :math:`\\tfrac12[\\log 2\\pi\\sigma + (y-\\mu)^2/\\sigma]`."""
     _check_pair(mean, target, "mean")
     check_tensor("var", var)
     if var.shape != mean.shape:
         raise ValueError(f"var: shape {tuple(var.shape)} differs from mean's {tuple(mean.shape)}")
     if not bool((var > 0).all()):
         raise ValueError("var: variances must be strictly positive")
-    w = _weights("mask", mask, mean)
-    per = 0.5 * (math.log(2 * math.pi) + var.log() + (target - mean) ** 2 / var)
-    return _reduce(per, w, dim)
+    return 0.5 * (math.log(2 * math.pi) + var.log() + (target - mean) ** 2 / var)
 
 
 def _stat(name: str, x: object, like: Tensor) -> Tensor:
@@ -175,13 +178,6 @@ def sliding_window_nll(mean: Tensor, var: Tensor, target: Tensor, window: int, m
     Returns ``(T,)``. (The thesis sums the log-density over dimensions; we average, as
     :func:`gaussian_nll` does — multiply by the number of dimensions to compare.)
     """
-    _check_pair(mean, target, "mean")
+    per = _nll_terms(mean, var, target)
     _check_window(window, mean)
-    check_tensor("var", var)
-    if var.shape != mean.shape:
-        raise ValueError(f"var: shape {tuple(var.shape)} differs from mean's {tuple(mean.shape)}")
-    if not bool((var > 0).all()):
-        raise ValueError("var: variances must be strictly positive")
-    w = _weights("mask", mask, mean)
-    per = 0.5 * (math.log(2 * math.pi) + var.log() + (target - mean) ** 2 / var)
-    return _sliding_mean(per, w, window)
+    return _sliding_mean(per, _weights("mask", mask, mean), window)

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import pytest
 import torch
-from torch import nn
 
 from pgm_wm.acrkn import (
     AcRKN,
@@ -24,18 +23,9 @@ from pgm_wm.gaussian import Gaussian
 from pgm_wm.kalman import kalman_filter
 from pgm_wm.rkn import BeliefDecoder, LocallyLinearTransition, ObservationEncoder
 
+from _helpers import IdentityEncoder
+
 DT = torch.float64
-
-
-class IdentityEncoder(nn.Module):
-    """w = obs, fixed observation variance: makes the ac-RKN a textbook linear Kalman filter."""
-
-    def __init__(self, var: torch.Tensor) -> None:
-        super().__init__()
-        self.var = var
-
-    def forward(self, obs):
-        return obs, self.var.expand_as(obs)
 
 
 def make_model(m=4, do=3, da=2, control="mlp", num_basis=5, bandwidth=1, predict_differences=True, seed=0, **kw):

@@ -40,19 +40,10 @@ from pgm_wm.hiprssm import (
 from pgm_wm.kalman import kalman_filter
 from pgm_wm.rkn import BeliefDecoder, LocallyLinearTransition, ObservationEncoder
 
+from _helpers import IdentityEncoder
+
 DT = torch.float64
 SETTINGS = settings(max_examples=15, deadline=None)
-
-
-class IdentityEncoder(nn.Module):
-    """w = obs with a fixed variance: turns the (ac-)RKN into a textbook Kalman filter."""
-
-    def __init__(self, var: torch.Tensor) -> None:
-        super().__init__()
-        self.var = var
-
-    def forward(self, obs):
-        return obs, self.var.expand_as(obs)
 
 
 class FixedTask(nn.Module):
