@@ -23,7 +23,7 @@ from pgm_wm.gaussian import Gaussian
 from pgm_wm.kalman import kalman_filter
 from pgm_wm.rkn import BeliefDecoder, LocallyLinearTransition, ObservationEncoder
 
-from _helpers import IdentityEncoder
+from _helpers import linear_acrkn
 
 DT = torch.float64
 
@@ -108,14 +108,8 @@ def test_linear_acrkn_equals_dense_kalman_filter_with_control():
     """Diagonal blocks (bandwidth 0), one basis matrix, identity encoder, linear control:
     the ac-RKN must be the dense Kalman filter with F = A, B u = B a (Eq. acrkn-predict)."""
     m, da, B, T = 3, 2, 2, 9
-    torch.manual_seed(3)
-    trans = LocallyLinearTransition(m, num_basis=1, bandwidth=0).to(DT)
-    with torch.no_grad():
-        for p in (trans.basis_11, trans.basis_12, trans.basis_21, trans.basis_22):
-            p.add_(0.1 * torch.randn_like(p))
-    r = torch.tensor([0.3, 0.5, 0.7], dtype=DT)
-    ctrl = LinearControl(da, m, init_std=0.5).to(DT)
-    model = AcRKN(IdentityEncoder(r), trans, ctrl, BeliefDecoder(m, m).to(DT), init_var=2.0)
+    model = linear_acrkn(m, da, seed=3)
+    trans, ctrl, r = model.transition, model.control, model.encoder.var
     g = torch.Generator().manual_seed(0)
     y, u = torch.randn(B, T, m, generator=g, dtype=DT), torch.randn(B, T, da, generator=g, dtype=DT)
     mask = torch.rand(B, T, generator=g) < 0.5

@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from torch import nn
 
-from pgm_wm.acrkn import AcRKN, LinearControl, MLPControl
+from pgm_wm.acrkn import AcRKN, MLPControl
 from pgm_wm.aggregation import BayesianContextEncoder
 from pgm_wm.factorized import FactorizedBelief, known_input
 from pgm_wm.gaussian import Gaussian, marginalize_linear
@@ -40,7 +40,7 @@ from pgm_wm.hiprssm import (
 from pgm_wm.kalman import kalman_filter
 from pgm_wm.rkn import BeliefDecoder, LocallyLinearTransition, ObservationEncoder
 
-from _helpers import IdentityEncoder
+from _helpers import linear_acrkn
 
 DT = torch.float64
 SETTINGS = settings(max_examples=15, deadline=None)
@@ -192,14 +192,8 @@ def test_linear_hiprssm_equals_dense_kalman_filter_with_task_cause():
     blocks are diagonal (so C Sigma_l C^T has the factorized structure): the HiP-RSSM filter must be
     the dense Kalman filter with F = A, input [B, C] [a_t; mu_l] and noise Q + C Sigma_l C^T."""
     m, da, B, T = 3, 2, 2, 8
-    torch.manual_seed(5)
-    trans = LocallyLinearTransition(m, num_basis=1, bandwidth=0).to(DT)
-    with torch.no_grad():
-        for p in (trans.basis_11, trans.basis_12, trans.basis_21, trans.basis_22):
-            p.add_(0.1 * torch.randn_like(p))
-    r = torch.tensor([0.3, 0.5, 0.7], dtype=DT)
-    ctrl = LinearControl(da, m, init_std=0.5).to(DT)
-    acrkn = AcRKN(IdentityEncoder(r), trans, ctrl, BeliefDecoder(m, m).to(DT), init_var=2.0)
+    acrkn = linear_acrkn(m, da, seed=5)
+    trans, ctrl, r = acrkn.transition, acrkn.control, acrkn.encoder.var
     tr = LinearTaskTransform(m, m).to(DT)
     with torch.no_grad():
         tr.C.copy_(torch.cat([torch.diag(torch.randn(m, dtype=DT)), torch.diag(torch.randn(m, dtype=DT))]))
