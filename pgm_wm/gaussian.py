@@ -42,13 +42,13 @@ its time loop, so there is exactly one implementation of each identity.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Sequence
 
 import torch
 from torch import Tensor
 
 from ._checks import check_last_dims, check_same_batch, check_spd, check_tensor
+from .beliefs import Gaussian  # the class lives with the belief family; re-exported here
 
 __all__ = [
     "Gaussian",
@@ -71,99 +71,6 @@ def _sym(m: Tensor) -> Tensor:
 def _matvec(A: Tensor, x: Tensor) -> Tensor:
     """``A x`` for ``A: (..., m, n)``, ``x: (..., n)`` with broadcasting -> ``(..., m)``."""
     return (A @ x.unsqueeze(-1)).squeeze(-1)
-
-
-@dataclass(frozen=True)
-class Gaussian:
-    """A (batch of) multivariate Gaussian belief(s) :math:`\\mathcal N(\\mu, \\Sigma)`.
-
-    Attributes:
-        mean: ``(..., n)``
-        cov: ``(..., n, n)``, symmetric positive (semi-)definite. The leading (batch)
-            dimensions of ``mean`` and ``cov`` must broadcast against each other.
-
-    Construction checks shapes only (cheap); call :meth:`validate` to also check that
-    ``cov`` is positive definite.
-    """
-
-    mean: Tensor
-    cov: Tensor
-
-    def __post_init__(self) -> None:
-        check_tensor("mean", self.mean, min_ndim=1)
-        n = self.mean.shape[-1]
-        check_last_dims("cov", self.cov, (n, n))
-        check_same_batch(("cov", "mean"), (self.cov, self.mean), (2, 1))
-
-    @property
-    def dim(self) -> int:
-        """Event dimension ``n``."""
-        return self.mean.shape[-1]
-
-    @property
-    def batch_shape(self) -> torch.Size:
-        """Broadcast leading shape of ``mean`` and ``cov``."""
-        return torch.broadcast_shapes(self.mean.shape[:-1], self.cov.shape[:-2])
-
-    @property
-    def var(self) -> Tensor:
-        """Marginal variances, the diagonal of ``cov``: ``(..., n)``."""
-        return torch.diagonal(self.cov, dim1=-2, dim2=-1)
-
-    @property
-    def std(self) -> Tensor:
-        """Marginal standard deviations: ``(..., n)``."""
-        return self.var.clamp_min(0).sqrt()
-
-    def validate(self, name: str = "belief") -> "Gaussian":
-        """Check that ``cov`` is symmetric positive definite; raise ``ValueError`` naming ``name``."""
-        check_spd(f"{name}.cov", self.cov.detach())
-        return self
-
-    def to(self, dtype: torch.dtype) -> "Gaussian":
-        """The same belief with ``mean`` and ``cov`` cast to ``dtype``."""
-        return Gaussian(self.mean.to(dtype), self.cov.to(dtype))
-
-    def expand(self, *batch_shape: int) -> "Gaussian":
-        """Broadcast ``mean`` and ``cov`` to the leading shape ``batch_shape``."""
-        n = self.dim
-        return Gaussian(self.mean.expand(*batch_shape, n), self.cov.expand(*batch_shape, n, n))
-
-    def __getitem__(self, index: object) -> "Gaussian":
-        """Index the batch dimensions, e.g. ``belief[0]`` or ``belief[:, t]``.
-
-        Both tensors are first broadcast to :attr:`batch_shape`, so the index refers to the
-        same batch element in ``mean`` and ``cov``.
-        """
-        b = self.expand(*self.batch_shape)
-        if not isinstance(index, tuple):
-            index = (index,)
-        if any(i is Ellipsis for i in index):
-            raise ValueError("index: Ellipsis is not supported; index the batch dimensions explicitly")
-        return Gaussian(b.mean[index], b.cov[index])
-
-    def log_prob(self, x: Tensor) -> Tensor:
-        """Log-density :math:`\\log\\mathcal N(x\\mid\\mu,\\Sigma)`, Eq. (gauss-logpdf). Returns ``(...)``."""
-        return log_density(x, self.mean, self.cov)
-
-    def sample(self, n: int, generator: torch.Generator | None = None) -> Tensor:
-        """Draw ``n`` samples :math:`\\mu + L\\epsilon` with :math:`LL^\\top = \\Sigma`: returns ``(n, ..., dim)``."""
-        if not isinstance(n, int) or n < 1:
-            raise ValueError(f"n: expected a positive integer, got {n!r}")
-        chol, info = torch.linalg.cholesky_ex(_sym(self.cov))
-        if bool((info != 0).any()):
-            raise ValueError("cov: matrix is not positive definite")
-        shape = (n, *self.batch_shape, self.dim)
-        eps = torch.randn(shape, dtype=self.mean.dtype, device=self.mean.device, generator=generator)
-        return self.mean + _matvec(chol, eps)
-
-    def where(self, keep_self: Tensor, other: "Gaussian") -> "Gaussian":
-        """Select ``self`` where ``keep_self`` (shape ``(...)``) is True, else ``other``."""
-        k = keep_self.to(torch.bool)
-        return Gaussian(
-            torch.where(k[..., None], self.mean, other.mean),
-            torch.where(k[..., None, None], self.cov, other.cov),
-        )
 
 
 # ---------------------------------------------------------------------------------------------

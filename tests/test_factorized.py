@@ -7,6 +7,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from pgm_wm.beliefs import DiagGaussian
 from pgm_wm.factorized import (
     FactorizedBelief,
     block_inverse,
@@ -81,7 +82,7 @@ def test_update_equals_dense_kalman_update(m, batch, seed):
     prior = random_belief(gen, (batch,), m)
     w = torch.randn(batch, m, generator=gen, dtype=D)
     w_var = 0.05 + 2.0 * torch.rand(batch, m, generator=gen, dtype=D)
-    post = factorized_update(prior, w, w_var)
+    post = factorized_update(prior, DiagGaussian(w, w_var))
     dense, _ = kf_update(prior.to_dense(), w, obs_matrix(m), torch.diag_embed(w_var))
     torch.testing.assert_close(post.mean, dense.mean, rtol=1e-10, atol=1e-10)
     torch.testing.assert_close(post.to_dense().cov, dense.cov, rtol=1e-10, atol=1e-10)
@@ -115,21 +116,21 @@ def test_update_mask_leaves_prior_exactly():
     w = torch.randn(4, 3, generator=gen, dtype=D)
     w_var = 0.1 + torch.rand(4, 3, generator=gen, dtype=D)
     mask = torch.tensor([True, False, True, False])
-    post = factorized_update(prior, w, w_var, mask)
-    full = factorized_update(prior, w, w_var)
+    post = factorized_update(prior, DiagGaussian(w, w_var), mask)
+    full = factorized_update(prior, DiagGaussian(w, w_var))
     for f in ("mean", "var_upper", "var_lower", "cov_side"):
         a, p, q = getattr(post, f), getattr(prior, f), getattr(full, f)
         assert torch.equal(a[~mask], p[~mask])  # bit-identical to the prior
         torch.testing.assert_close(a[mask], q[mask], rtol=1e-14, atol=1e-14)
     # a 0/1 float mask is accepted
-    post2 = factorized_update(prior, w, w_var, mask.to(D))
+    post2 = factorized_update(prior, DiagGaussian(w, w_var), mask.to(D))
     assert torch.equal(post2.mean, post.mean)
 
 
 def test_update_float32_small_observation_variance_stays_positive():
     b = FactorizedBelief.isotropic((2,), 5, var=10.0, dtype=torch.float32)
     w = torch.randn(2, 5)
-    post = factorized_update(b, w, torch.full((2, 5), 1e-6))
+    post = factorized_update(b, DiagGaussian(w, torch.full((2, 5), 1e-6)))
     assert torch.all(post.var_upper > 0) and torch.all(post.var_lower > 0)
     torch.testing.assert_close(post.var_upper, torch.full((2, 5), 1e-6), rtol=1e-4, atol=0)
 
@@ -140,8 +141,8 @@ def test_sequential_updates_commute():
     prior = random_belief(gen, (2,), 3)
     w1, w2 = torch.randn(2, 2, 3, generator=gen, dtype=D)
     v1, v2 = 0.1 + torch.rand(2, 2, 3, generator=gen, dtype=D)
-    a = factorized_update(factorized_update(prior, w1, v1), w2, v2)
-    b = factorized_update(factorized_update(prior, w2, v2), w1, v1)
+    a = factorized_update(factorized_update(prior, DiagGaussian(w1, v1)), DiagGaussian(w2, v2))
+    b = factorized_update(factorized_update(prior, DiagGaussian(w2, v2)), DiagGaussian(w1, v1))
     torch.testing.assert_close(a.to_dense().cov, b.to_dense().cov, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(a.mean, b.mean, rtol=1e-12, atol=1e-12)
 
@@ -219,7 +220,7 @@ def test_linear_cause_block_diagonals():
     C = torch.randn(2, 2 * m, k, generator=gen, dtype=D)
     mu = torch.randn(2, k, generator=gen, dtype=D)
     var = 0.1 + torch.rand(2, k, generator=gen, dtype=D)
-    c = linear_cause(C, mu, var)
+    c = linear_cause(C, DiagGaussian(mu, var))
     ref = C @ torch.diag_embed(var) @ C.transpose(-1, -2)
     torch.testing.assert_close(c.mean, (C @ mu.unsqueeze(-1)).squeeze(-1))
     exp = FactorizedBelief.from_dense(Gaussian(c.mean, ref))
@@ -238,7 +239,7 @@ def test_predict_with_causes_equals_dense_marginalization():
                    torch.diag(torch.randn(m, generator=gen, dtype=D))], dim=0)  # (2m, m)
     task_mu, task_var = torch.randn(2, m, generator=gen, dtype=D), 0.2 + torch.rand(2, m, generator=gen, dtype=D)
     u = torch.randn(2, 2 * m, generator=gen, dtype=D)
-    out = factorized_predict(b, *blocks, q, causes=[known_input(u), linear_cause(C, task_mu, task_var)])
+    out = factorized_predict(b, *blocks, q, causes=[known_input(u), linear_cause(C, DiagGaussian(task_mu, task_var))])
     dense = marginalize_linear([(dense_A(*blocks), b.to_dense()),
                                 (C, Gaussian(task_mu, torch.diag_embed(task_var)))],
                                noise_cov=torch.diag(q), offset=u)
@@ -258,18 +259,36 @@ def test_bad_inputs_raise_value_error():
         FactorizedBelief(torch.zeros(6), torch.ones(3), torch.ones(3), torch.full((3,), 2.0)).validate()
     with pytest.raises(ValueError, match="var_upper"):
         FactorizedBelief(torch.zeros(6), -torch.ones(3), torch.ones(3), torch.zeros(3)).validate()
-    with pytest.raises(ValueError, match="w"):
-        factorized_update(b, torch.zeros(2, 4, dtype=D), v)
-    with pytest.raises(ValueError, match="w_var"):
-        factorized_update(b, w, -v)
-    with pytest.raises(ValueError, match="w"):
-        factorized_update(b, w * float("nan"), v)
-    with pytest.raises(ValueError, match="mask"):
-        factorized_update(b, w, v, torch.ones(3, dtype=torch.bool))
-    with pytest.raises(ValueError, match="mask"):
-        factorized_update(b, w, v, torch.full((2,), 0.5))
-    with pytest.raises(ValueError, match="belief"):
-        factorized_update(b.to_dense(), w, v)
+    o = DiagGaussian(w, v)
+    with pytest.raises(ValueError, match="^observation.mean"):
+        factorized_update(b, DiagGaussian(torch.zeros(2, 4, dtype=D), torch.ones(2, 4, dtype=D)))
+    with pytest.raises(ValueError, match="^observation.var"):
+        factorized_update(b, DiagGaussian(w, -v))
+    with pytest.raises(ValueError, match="^observation.var"):
+        factorized_update(b, DiagGaussian(w, torch.full_like(v, float("nan"))))
+    with pytest.raises(ValueError, match="^observation.mean"):
+        factorized_update(b, DiagGaussian(w * float("nan"), v))
+    with pytest.raises(ValueError, match="^observation"):
+        factorized_update(b, w)
+    with pytest.raises(ValueError, match="^observation: batch"):
+        factorized_update(b, DiagGaussian(torch.zeros(5, 3, dtype=D), torch.ones(5, 3, dtype=D)))
+    with pytest.raises(ValueError, match="^mask"):
+        factorized_update(b, o, torch.ones(3, dtype=torch.bool))
+    with pytest.raises(ValueError, match="^mask"):
+        factorized_update(b, o, torch.full((2,), 0.5))
+    with pytest.raises(ValueError, match="^prior"):
+        factorized_update(b.to_dense(), o)
+    # issue 13.8: validate=True checks the prior belief too (a negative prior variance would give a
+    # negative posterior variance)
+    bad = FactorizedBelief(b.mean, -b.var_upper, b.var_lower, b.cov_side)
+    with pytest.raises(ValueError, match="^prior.var_upper"):
+        factorized_update(bad, o)
+    with pytest.raises(ValueError, match="^prior.mean"):
+        factorized_update(FactorizedBelief(b.mean * float("nan"), b.var_upper, b.var_lower, b.cov_side), o)
+    # the older positional form (w, w_var, mask) is still accepted and gives the same result
+    legacy = factorized_update(b, w, v, torch.tensor([True, False]))
+    new = factorized_update(b, o, torch.tensor([True, False]))
+    assert all(torch.equal(x, y) for x, y in zip(legacy._tensors(), new._tensors()))
     eye = torch.eye(3, dtype=D)
     with pytest.raises(ValueError, match="A12"):
         factorized_predict(b, eye, torch.eye(4, dtype=D), eye, eye, torch.ones(6, dtype=D))
@@ -284,6 +303,6 @@ def test_bad_inputs_raise_value_error():
     with pytest.raises(ValueError, match="side"):
         block_inverse(torch.ones(3), torch.ones(3), torch.full((3,), 1.0))
     with pytest.raises(ValueError, match="C"):
-        linear_cause(torch.ones(5, 2), torch.zeros(2), torch.ones(2))
+        linear_cause(torch.ones(5, 2), DiagGaussian(torch.zeros(2), torch.ones(2)))
     with pytest.raises(ValueError, match="b"):
         known_input(torch.ones(3))
