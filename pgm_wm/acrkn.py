@@ -40,14 +40,17 @@ latent prior's variance grows, which the decoder sees.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Callable, Mapping, Sequence
 
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_last_dims, check_mask, check_tensor
-from .factorized import FactorizedBelief, factorized_predict_from_matrix, known_input
-from .rkn import RKN, FilterOutput, LocallyLinearTransition, mlp
+from ._checks import check_finite, check_last_dims, check_mask, check_tensor
+from .beliefs import FactorizedBelief
+from .factorized import factorized_predict_from_matrix
+from .filtering import FilterResult
+from .rkn import RKN, Cause, LocallyLinearTransition, mlp
 
 __all__ = [
     "check_sequences",
@@ -55,6 +58,7 @@ __all__ = [
     "LocallyLinearControl",
     "MLPControl",
     "ZeroControl",
+    "control_cause",
     "NormBoundedTransition",
     "difference_scaling",
     "DifferenceReadout",
@@ -64,11 +68,11 @@ __all__ = [
     "inverse_dynamics_loss",
 ]
 
-ExtraCausesFn = Callable[[int, FactorizedBelief], Sequence[FactorizedBelief]]
-
-
 class _Control(nn.Module):
-    """Common input checks of the control models."""
+    """Common input checks of the control models. ``reads_state``: whether :math:`b` depends on
+    the posterior mean (then it is a state-dependent cause, evaluated inside the filter loop)."""
+
+    reads_state: bool = False
 
     def __init__(self, action_dim: int, latent_obs_dim: int) -> None:
         super().__init__()
@@ -98,6 +102,8 @@ class LocallyLinearControl(_Control):
     r"""Locally linear control :math:`b(a, z) = \sum_{k=1}^K \beta_k(z)\,B^{(k)} a` with
     :math:`\beta(z) = \mathrm{softmax}(Wz + c)`, Eq. (acrkn-control-local). ``mean`` is the
     posterior mean :math:`z_t^+` (so :math:`b` stays a known quantity at predict time)."""
+
+    reads_state = True
 
     def __init__(self, action_dim: int, latent_obs_dim: int, num_basis: int = 15, init_std: float = 0.1) -> None:
         super().__init__(action_dim, latent_obs_dim)
@@ -142,6 +148,29 @@ class ZeroControl(_Control):
         return torch.zeros_like(mean)
 
 
+@dataclass(frozen=True)
+class _StateControl:
+    """The control cause of a model whose :math:`b(a_t, z_t^+)` reads the posterior (a state cause)."""
+
+    control: nn.Module
+    actions: Tensor
+
+    def __call__(self, t: int, posterior: FactorizedBelief) -> FactorizedBelief:
+        return FactorizedBelief.known(self.control(self.actions[:, t], posterior.mean))
+
+
+def control_cause(control: nn.Module, actions: Tensor) -> Cause:
+    r"""The action term of Eq. (acrkn-predict) as a cause of the predict step: the known input
+    :math:`b(a_t)` with zero variance. A control model that does not read the state
+    (``reads_state`` False) is evaluated for the whole sequence ``actions: (B, T, da)`` at once
+    (a :class:`FactorizedBelief` ``(B, T, 2m)``); :class:`LocallyLinearControl` becomes a state
+    cause evaluated inside the loop on :math:`z_t^+`."""
+    if getattr(control, "reads_state", True):
+        return _StateControl(control, actions)
+    zeros = actions.new_zeros(*actions.shape[:-1], 2 * control.latent_obs_dim)
+    return FactorizedBelief.known(control(actions, zeros))
+
+
 class NormBoundedTransition(nn.Module):
     r"""A locally linear transition whose every :math:`A_t` has spectral norm at most ``max_norm``.
 
@@ -171,6 +200,14 @@ class NormBoundedTransition(nn.Module):
     @property
     def trans_var(self) -> Tensor:
         return self.base.trans_var
+
+    @property
+    def constant(self) -> bool:
+        return self.base.constant
+
+    @property
+    def diagonal_blocks(self) -> bool:
+        return self.base.diagonal_blocks
 
     def scaled_basis(self) -> Tensor:
         """:math:`\tilde M_k`: ``(K, 2m, 2m)`` with spectral norms ``<= max_norm``."""
@@ -290,6 +327,8 @@ def check_sequences(obs: Tensor, actions: Tensor | None, mask: Tensor | None,
     """Check ``obs: (B, T, do)``, ``actions: (B, T, da)``, ``mask: (B, T)``; return the bool mask."""
     check_tensor("obs", obs, 3)
     B, T = obs.shape[:2]
+    if T == 0:
+        raise ValueError("obs: need at least one time step, got T = 0")
     if obs_dim is not None:
         check_last_dims("obs", obs, (obs_dim,))
     if actions is not None:
@@ -298,6 +337,7 @@ def check_sequences(obs: Tensor, actions: Tensor | None, mask: Tensor | None,
             raise ValueError(f"actions: expected leading shape {(B, T)}, got {tuple(actions.shape)}")
         if action_dim is not None:
             check_last_dims("actions", actions, (action_dim,))
+        check_finite("actions", actions)
     if mask is not None:
         mask = check_mask("mask", mask, (B, T))
     return mask
@@ -307,7 +347,7 @@ class AcRKN(nn.Module):
     """Action-conditional RKN: ``encoder -> [update, predict + b(a)]* -> decoder`` (Chapter 4).
 
     Composes an :class:`pgm_wm.rkn.RKN` (attribute ``rkn``) and a control model; the control
-    term enters the RKN's predict step as a zero-variance cause through ``causes_fn``.
+    term enters the RKN's predict step as one more cause (:meth:`causes`).
 
     Args:
         encoder: ``obs (..., do) -> (w, w_var) (..., m)``, e.g. :class:`pgm_wm.rkn.ObservationEncoder`.
@@ -357,41 +397,35 @@ class AcRKN(nn.Module):
     def predict_differences(self) -> bool:
         return self.readout.predict_differences
 
+    def causes(self, actions: Tensor | None) -> list[Cause]:
+        """The causes this model adds to the RKN's predict step: ``[control cause]``
+        (:func:`control_cause`; none for ``actions=None``). ac-RKN = RKN + this list."""
+        return [] if actions is None else [control_cause(self.control, actions)]
+
     def filter(
         self,
         obs: Tensor,
         actions: Tensor | None,
         mask: Tensor | None = None,
-        extra_causes_fn: ExtraCausesFn | None = None,
+        extra_causes: Sequence[Cause] = (),
         init: FactorizedBelief | None = None,
-    ) -> FilterOutput:
+    ) -> FilterResult[FactorizedBelief]:
         r"""Encode ``obs: (B, T, do)`` and filter with the control term in every predict step.
 
         ``actions: (B, T, da)``: ``actions[:, t]`` acts in the predict step ``t -> t+1``. ``None``
         drops the control term (the plain RKN; used for the no-feedback inverse-dynamics ablation).
         ``mask: (B, T)`` True = observed; observations at masked steps are zeroed before
         encoding, so their values can never reach the beliefs or the gradients.
-        ``extra_causes_fn(t, posterior_t)`` returns further independent causes for the same
-        predict step (Chapter 5 adds a latent task there).
+        ``extra_causes`` are further independent causes of the same predict step (Chapter 5 adds
+        a latent task there), appended after :meth:`causes`.
         """
         mask = check_sequences(obs, actions, mask)
-        if mask is not None:
-            obs = torch.where(mask[..., None], obs, torch.zeros((), dtype=obs.dtype))
-        w, w_var = self.rkn.encoder(obs)
+        w = self.rkn.encode(obs, mask)
+        return self.rkn.filter(w, mask=mask, causes=self.causes(actions) + list(extra_causes), init=init)
 
-        def causes_fn(t: int, post: FactorizedBelief) -> list[FactorizedBelief]:
-            causes: list[FactorizedBelief] = []
-            if actions is not None:
-                causes.append(known_input(self.control(actions[:, t], post.mean)))
-            if extra_causes_fn is not None:
-                causes.extend(extra_causes_fn(t, post))
-            return causes
-
-        return self.rkn.filter(w, w_var, mask, causes_fn, init)
-
-    def decode_predictions(self, out: FilterOutput, obs: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
-        """Decode ``out.predicted`` and apply Eq. (acrkn-diff): ``(mean, var)`` each ``(B, T, do)``."""
-        d_mean, d_var = self.rkn.decoder(out.predicted)
+    def decode_predictions(self, out: FilterResult, obs: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
+        """Decode ``out.next_prior`` and apply Eq. (acrkn-diff): ``(mean, var)`` each ``(B, T, do)``."""
+        d_mean, d_var = self.rkn.decoder(out.next_prior)
         return self.readout(obs, mask, d_mean, d_var)
 
     def forward(
@@ -399,14 +433,13 @@ class AcRKN(nn.Module):
         obs: Tensor,
         actions: Tensor,
         mask: Tensor | None = None,
-        extra_causes_fn: ExtraCausesFn | None = None,
     ) -> tuple[Tensor, Tensor]:
         """Predict :math:`o_{t+1}` for every ``t``: ``(mean, var)`` each ``(B, T, do)``.
 
         Uses only observations with ``mask`` True at indices ``<= t`` and actions ``<= t``.
         """
         mask = check_sequences(obs, actions, mask, self.obs_dim)
-        out = self.filter(obs, actions, mask, extra_causes_fn)
+        out = self.filter(obs, actions, mask)
         return self.decode_predictions(out, obs, mask)
 
 

@@ -46,13 +46,16 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ._checks import as_tensor, check_last_dims, check_mask, check_positive, check_tensor
-from .factorized import FactorizedBelief, block_inverse
+from ._checks import as_tensor, check_finite, check_last_dims, check_mask, check_positive, check_tensor
+from .beliefs import DiagGaussian, FactorizedBelief
+from .factorized import block_inverse
 from .layers import mlp
 
 __all__ = [
+    "set_update",
     "bayesian_aggregation",
     "set_condition",
+    "zero_padding",
     "precision_weights",
     "masked_mean_pool",
     "masked_max_pool",
@@ -126,7 +129,72 @@ def _prior(
     return t
 
 
-# ----------------------------------------------------------------------------- the two rules
+# ----------------------------------------------------------------------------- the set update
+def set_update(
+    prior: DiagGaussian | FactorizedBelief,
+    observation: DiagGaussian,
+    mask: Tensor | None = None,
+    *,
+    validate: bool = True,
+) -> DiagGaussian | FactorizedBelief:
+    r"""Condition a belief on a *set* of observations ``observation = DiagGaussian(r, r_var)``
+    with ``(..., N, d)`` (``mask: (..., N)``, True = present), in precision form.
+
+    * ``prior`` a :class:`DiagGaussian` (``(..., d)``): :math:`H = I`, Bayesian aggregation,
+      Eq. (ba-update):
+
+      .. math:: \sigma_l = 1\oslash\Big(1\oslash\sigma_0 + \sum_{n} m_n\, 1\oslash\sigma_n\Big),\qquad
+                \mu_l = \mu_0 + \sigma_l\odot\sum_{n} m_n\,(r_n - \mu_0)\oslash\sigma_n .
+
+    * ``prior`` a :class:`FactorizedBelief` (``(..., 2m)``, ``d = m``): :math:`H = [I, 0]`,
+      Eq. (set-condition): covariance → precision by scalar block inversion
+      (:func:`pgm_wm.factorized.block_inverse`), only the upper precision block changes,
+      :math:`\lambda^{u+} = \lambda^u + \sum_n m_n 1\oslash\sigma_n`, back to a covariance, and
+      :math:`\mu^+ = \mu^- + [\sigma^{u+}; \sigma^{s+}]\odot\sum_n m_n (r_n - \mu^{u-})\oslash\sigma_n`.
+
+    Padded elements never reach the result or its gradient (their values may be anything, NaN
+    included); an all-padded set returns the prior. For ``N = 1`` and a factorized prior this
+    equals :func:`pgm_wm.factorized.factorized_update`; for any ``N`` it equals ``N`` sequential
+    updates in any order. ``validate`` checks the prior and the present elements.
+    """
+    if not isinstance(observation, DiagGaussian):
+        raise ValueError(f"observation: expected a DiagGaussian (r, r_var), got {type(observation).__name__}")
+    r, r_var = observation.mean, observation.var
+    mask = _check_set(r, r_var, mask, validate)
+    if isinstance(prior, DiagGaussian):
+        d = r.shape[-1]
+        check_last_dims("prior.mean", prior.mean, (d,))
+        if validate:
+            prior.validate("prior")
+        try:
+            full = _broadcast_shape(prior.mean.shape, (*r.shape[:-2], d))
+        except ValueError as err:
+            raise ValueError(f"prior: batch shape {tuple(prior.mean.shape[:-1])} does not broadcast to the "
+                             f"set's batch shape {tuple(r.shape[:-2])}") from err
+        mu0 = prior.mean.expand(full)
+        prec_sum, resid_sum = _precision_sums(r, r_var, mask, mu0)
+        var = 1.0 / (1.0 / prior.var + prec_sum)
+        return DiagGaussian(mu0 + var * resid_sum, var)
+    if not isinstance(prior, FactorizedBelief):
+        raise ValueError(f"prior: expected a DiagGaussian or FactorizedBelief, got {type(prior).__name__}")
+    m = prior.latent_obs_dim
+    check_last_dims("observation.mean", r, (None, m))
+    if validate:
+        prior.validate("prior")
+    lam_u, lam_l, lam_s = block_inverse(prior.var_upper, prior.var_lower, prior.cov_side)
+    mu_u = prior.mean_upper
+    try:
+        batch = _broadcast_shape(mu_u.shape[:-1], r.shape[:-2])
+    except ValueError as err:
+        raise ValueError(f"observation: batch shape {tuple(r.shape[:-2])} does not broadcast with the prior's "
+                         f"{tuple(mu_u.shape[:-1])}") from err
+    prec_sum, resid_sum = _precision_sums(r, r_var, mask, mu_u.expand(*batch, m))
+    lam_u_post = lam_u + prec_sum
+    var_u, var_l, side = block_inverse(lam_u_post, lam_l.expand_as(lam_u_post), lam_s.expand_as(lam_u_post))
+    mean = prior.mean + torch.cat([var_u * resid_sum, side * resid_sum], dim=-1)
+    return FactorizedBelief(mean, var_u, var_l, side)
+
+
 def bayesian_aggregation(
     r: Tensor,
     r_var: Tensor,
@@ -134,12 +202,9 @@ def bayesian_aggregation(
     prior_mean: Tensor | float | None = None,
     prior_var: Tensor | float | None = None,
     validate: bool = True,
-) -> tuple[Tensor, Tensor]:
-    r"""Posterior over :math:`l` from a set of Gaussian observations with :math:`H = I`,
-    Eq. (ba-update):
-
-    .. math:: \sigma_l = 1\oslash\Big(1\oslash\sigma_0 + \sum_{n} m_n\, 1\oslash\sigma_n\Big),\qquad
-              \mu_l = \mu_0 + \sigma_l\odot\sum_{n} m_n\,(r_n - \mu_0)\oslash\sigma_n .
+) -> DiagGaussian:
+    r"""Bayesian aggregation, Eq. (ba-update): :func:`set_update` of the prior
+    :math:`\mathcal N(\mu_0, \operatorname{diag}\sigma_0)` on the set ``(r, r_var)``.
 
     Args:
         r: latent observations ``(..., N, d)``.
@@ -151,27 +216,28 @@ def bayesian_aggregation(
         validate: check positivity/finiteness (set False in training loops to avoid host syncs).
 
     Returns:
-        ``(mean, var)``, each ``(..., d)``. Works for any batch shape, including batch size 1
-        and ``N = 1``.
+        ``DiagGaussian(mean, var)``, each ``(..., d)`` (unpacks as ``mean, var``). Works for any
+        batch shape, including batch size 1 and ``N = 1``.
     """
-    mask = _check_set(r, r_var, mask, validate)
+    check_tensor("r", r, min_ndim=2)
     d = r.shape[-1]
     mu0 = _prior("prior_mean", prior_mean, 0.0, r, d)
     var0 = _prior("prior_var", prior_var, 1.0, r, d)
     if validate:
+        check_finite("prior_mean", mu0)
         check_positive("prior_var", var0)
-    batch = r.shape[:-2]
     try:
-        full = _broadcast_shape(mu0.shape, var0.shape, (*batch, d))
+        full = _broadcast_shape(mu0.shape, var0.shape, (*r.shape[:-2], d))
     except ValueError as err:
         raise ValueError(
             f"prior_mean: prior of shape {tuple(mu0.shape)} / {tuple(var0.shape)} does not "
-            f"broadcast to the set's batch shape {(*batch, d)}"
+            f"broadcast to the set's batch shape {(*r.shape[:-2], d)}"
         ) from err
-    mu0 = mu0.expand(full)
-    prec_sum, resid_sum = _precision_sums(r, r_var, mask, mu0)
-    var = 1.0 / (1.0 / var0 + prec_sum)
-    return mu0 + var * resid_sum, var
+    check_tensor("r_var", r_var, min_ndim=2)
+    if tuple(r_var.shape) != tuple(r.shape):
+        raise ValueError(f"r_var: expected the shape of r {tuple(r.shape)}, got {tuple(r_var.shape)}")
+    prior = DiagGaussian(mu0.expand(full), var0.expand(full))
+    return set_update(prior, DiagGaussian(r, r_var), mask, validate=validate)
 
 
 def set_condition(
@@ -181,45 +247,15 @@ def set_condition(
     mask: Tensor | None = None,
     validate: bool = True,
 ) -> FactorizedBelief:
-    r"""Condition a factorized belief on a set of observations with :math:`H = [I, 0]`,
-    Eq. (set-condition).
-
-    1. Covariance → precision by scalar block inversion (:func:`pgm_wm.factorized.block_inverse`):
-       :math:`(\lambda^u, \lambda^l, \lambda^s)`.
-    2. Only the upper precision block changes: :math:`\lambda^{u+} = \lambda^u + \sum_n m_n\,
-       1\oslash\sigma_n`; :math:`\lambda^{l}` and :math:`\lambda^{s}` are unchanged.
-    3. Precision → covariance again: :math:`(\sigma^{u+}, \sigma^{l+}, \sigma^{s+})`.
-    4. Mean: :math:`\mu^+ = \mu^- + [\sigma^{u+}; \sigma^{s+}]\odot\sum_n m_n (r_n - \mu^{u-})\oslash\sigma_n`.
-
-    Args:
-        prior: belief with mean ``(..., 2m)`` and ``var_upper, var_lower, cov_side: (..., m)``.
-        r, r_var: ``(..., N, m)``; ``r_var`` strictly positive where present.
-        mask: ``(..., N)`` bool, True = present. An all-padded set returns the prior (up to
-            rounding of the two block inversions).
-
-    For ``N = 1`` this equals :func:`pgm_wm.factorized.factorized_update`; for any ``N`` it equals
-    ``N`` sequential updates in any order (tested against dense conditioning in
-    :mod:`pgm_wm.gaussian`).
-    """
+    """Older spelling of ``set_update(prior, DiagGaussian(r, r_var), mask)`` for a factorized
+    prior, Eq. (set-condition); kept so existing call sites keep working."""
     if not isinstance(prior, FactorizedBelief):
         raise ValueError(f"prior: expected a FactorizedBelief, got {type(prior).__name__}")
-    mask = _check_set(r, r_var, mask, validate)
-    m = prior.latent_obs_dim
-    check_last_dims("r", r, (None, m))
-    if validate:
-        prior.validate("prior")
-    lam_u, lam_l, lam_s = block_inverse(prior.var_upper, prior.var_lower, prior.cov_side)
-    mu_u = prior.mean_upper
-    try:
-        batch = _broadcast_shape(mu_u.shape[:-1], r.shape[:-2])
-    except ValueError as err:
-        raise ValueError(f"r: batch shape {tuple(r.shape[:-2])} does not broadcast with the prior's "
-                         f"{tuple(mu_u.shape[:-1])}") from err
-    prec_sum, resid_sum = _precision_sums(r, r_var, mask, mu_u.expand(*batch, m))
-    lam_u_post = lam_u + prec_sum
-    var_u, var_l, side = block_inverse(lam_u_post, lam_l.expand_as(lam_u_post), lam_s.expand_as(lam_u_post))
-    mean = prior.mean + torch.cat([var_u * resid_sum, side * resid_sum], dim=-1)
-    return FactorizedBelief(mean, var_u, var_l, side)
+    check_tensor("r", r, min_ndim=2)
+    check_tensor("r_var", r_var, min_ndim=2)
+    if tuple(r_var.shape) != tuple(r.shape):
+        raise ValueError(f"r_var: expected the shape of r {tuple(r.shape)}, got {tuple(r_var.shape)}")
+    return set_update(prior, DiagGaussian(r, r_var), mask, validate=validate)
 
 
 def precision_weights(
@@ -278,6 +314,15 @@ def masked_max_pool(h: Tensor, mask: Tensor | None = None) -> Tensor:
     return torch.where(m.any(-2), out, torch.zeros_like(out))
 
 
+def zero_padding(x: Tensor, mask: Tensor | None) -> Tensor:
+    """Set elements ``x: (..., N, F)`` with ``mask: (..., N)`` False to zero *before* a network sees
+    them, so that whatever padding holds (NaN included) can reach neither the outputs nor the
+    parameter gradients (a masked NaN still gives ``0 * NaN = NaN`` in a backward pass)."""
+    if mask is None:
+        return x
+    return torch.where(mask[..., None], x, torch.zeros((), dtype=x.dtype, device=x.device))
+
+
 # ----------------------------------------------------------------------------- learned modules
 def positive_variance(raw: Tensor, min_var: float) -> Tensor:
     r"""Map an unconstrained network output to a variance: :math:`\mathrm{softplus}(x) + v_{min}`.
@@ -318,18 +363,20 @@ class SetEncoder(nn.Module):
         self.enc_r = nn.Linear(hidden[-1], latent_dim)
         self.enc_var = nn.Linear(hidden[-1], latent_dim)
 
-    def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
+    def forward(self, x: Tensor) -> DiagGaussian:
+        """``x: (..., N, in_dim)`` -> ``DiagGaussian(r, r_var)``, each ``(..., N, latent_dim)``."""
         check_last_dims("x", x, (None, self.in_dim))
         h = self.trunk(x)
-        return self.enc_r(h), positive_variance(self.enc_var(h), self.min_var)
+        return DiagGaussian(self.enc_r(h), positive_variance(self.enc_var(h), self.min_var))
 
 
 class BayesianContextEncoder(nn.Module):
     r""":class:`SetEncoder` followed by :func:`bayesian_aggregation` with prior
     :math:`\mathcal N(0, I)` (learnable if ``learn_prior``).
 
-    ``forward(x: (..., N, in_dim), mask: (..., N) | None) -> (mean, var)``, each
-    ``(..., latent_dim)``. :meth:`encode` exposes the per-element ``(r, r_var)``.
+    ``forward(x: (..., N, in_dim), mask: (..., N) | None) -> DiagGaussian``, ``(..., latent_dim)``
+    (padded elements are zeroed before the encoder sees them). :meth:`encode` exposes the
+    per-element ``DiagGaussian(r, r_var)``.
     """
 
     def __init__(
@@ -356,13 +403,21 @@ class BayesianContextEncoder(nn.Module):
     def prior_var(self) -> Tensor:
         return self.prior_raw_var.exp()
 
-    def encode(self, x: Tensor) -> tuple[Tensor, Tensor]:
+    @property
+    def prior(self) -> DiagGaussian:
+        r"""The aggregation prior :math:`\mathcal N(\mu_0, \operatorname{diag}\sigma_0)`."""
+        return DiagGaussian(self.prior_mean, self.prior_var)
+
+    def encode(self, x: Tensor) -> DiagGaussian:
         """Per-element latent observations and variances, ``(..., N, latent_dim)`` each."""
         return self.encoder(x)
 
-    def forward(self, x: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        r, r_var = self.encoder(x)
-        return bayesian_aggregation(r, r_var, mask, self.prior_mean, self.prior_var, validate=False)
+    def forward(self, x: Tensor, mask: Tensor | None = None) -> DiagGaussian:
+        if mask is not None:
+            mask = check_mask("mask", mask, tuple(x.shape[:-1]))
+        elements = self.encoder(zero_padding(x, mask))
+        prior = self.prior.map(lambda t: t.to(elements.mean.dtype))
+        return set_update(prior, elements, mask, validate=False)
 
 
 class DeepSetContextEncoder(nn.Module):
@@ -373,7 +428,8 @@ class DeepSetContextEncoder(nn.Module):
     mean and, through :func:`positive_variance`, a variance. Unlike Bayesian aggregation, nothing
     forces the variance to shrink as the set grows: the model must learn that from data.
 
-    ``forward(x: (..., N, in_dim), mask) -> (mean, var)``, each ``(..., latent_dim)``.
+    ``forward(x: (..., N, in_dim), mask) -> DiagGaussian``, ``(..., latent_dim)`` (padded elements
+    are zeroed before the trunk sees them).
     """
 
     def __init__(
@@ -398,12 +454,14 @@ class DeepSetContextEncoder(nn.Module):
         self.head_mean = nn.Linear(out, latent_dim)
         self.head_var = nn.Linear(out, latent_dim)
 
-    def forward(self, x: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    def forward(self, x: Tensor, mask: Tensor | None = None) -> DiagGaussian:
         check_last_dims("x", x, (None, self.in_dim))
-        h = self.trunk(x)
+        if mask is not None:
+            mask = check_mask("mask", mask, tuple(x.shape[:-1]))
+        h = self.trunk(zero_padding(x, mask))
         pooled = masked_mean_pool(h, mask) if self.pool == "mean" else masked_max_pool(h, mask)
         g = self.head(pooled)
-        return self.head_mean(g), positive_variance(self.head_var(g), self.min_var)
+        return DiagGaussian(self.head_mean(g), positive_variance(self.head_var(g), self.min_var))
 
 
 class MeanPoolContextEncoder(DeepSetContextEncoder):

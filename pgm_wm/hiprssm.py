@@ -24,8 +24,9 @@ ac-RKN of Chapter 4 plus **one more independent cause** in the predict step:
    :math:`f(\mu_l)` in the mean and :math:`g(\sigma_l)\ge 0` on the covariance diagonal.
 3. **Observation update**: the exact factorized Kalman update of the RKN (unchanged).
 
-The task cause enters through the ``extra_causes_fn`` hook of :meth:`pgm_wm.acrkn.AcRKN.filter`,
-so no filtering code is duplicated: with a zero task term the HiP-RSSM *is* the ac-RKN.
+The model declares its causes (:meth:`HiPRSSM.causes`): the ac-RKN's ``[control]`` plus
+``[task]``, the task cause known before the loop (one sequence, constant over the window). No
+filtering code is duplicated: dropping the last cause gives the ac-RKN exactly.
 
 Data (Algorithm "multitask dataset"): :func:`make_windows` cuts each trajectory into
 non-overlapping windows of ``k`` steps; the context of window :math:`j` is the set of the
@@ -48,11 +49,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ._checks import check_last_dims, check_mask, check_tensor
+from ._checks import check_finite, check_last_dims, check_mask, check_tensor
+from .beliefs import DiagGaussian, FactorizedBelief
 from .context import transition_features
-from .factorized import FactorizedBelief, linear_cause
+from .factorized import linear_cause
+from .filtering import FilterResult
 from .metrics import rmse
-from .rkn import RKN, LocallyLinearTransition, ObservationEncoder, mlp
+from .rkn import RKN, Cause, LocallyLinearTransition, ObservationEncoder, mlp, over_time
 
 __all__ = [
     "context_features",
@@ -262,7 +265,8 @@ class LinearTaskTransform(nn.Module):
     structure (exact block diagonals, :func:`pgm_wm.factorized.linear_cause`).
 
     ``C: (2m, task_dim)``, initialized with i.i.d. :math:`\mathcal N(0, \text{init\_std}^2)` entries.
-    ``forward(mean, var: (..., task_dim)) -> FactorizedBelief`` with ``mean (..., 2m)``.
+    ``forward(task: DiagGaussian (..., task_dim)) -> FactorizedBelief`` with ``mean (..., 2m)``
+    (``forward(mean, var)`` is accepted too).
     """
 
     def __init__(self, task_dim: int, latent_obs_dim: int, init_std: float = 0.1) -> None:
@@ -272,10 +276,19 @@ class LinearTaskTransform(nn.Module):
         self.task_dim, self.latent_obs_dim = task_dim, latent_obs_dim
         self.C = nn.Parameter(init_std * torch.randn(2 * latent_obs_dim, task_dim))
 
-    def forward(self, mean: Tensor, var: Tensor) -> FactorizedBelief:
-        check_last_dims("mean", mean, (self.task_dim,))
-        check_last_dims("var", var, (self.task_dim,))
-        return linear_cause(self.C.to(mean.dtype), mean, var)
+    def forward(self, task: DiagGaussian | Tensor, var: Tensor | None = None) -> FactorizedBelief:
+        task = _as_task(task, var)
+        check_last_dims("task.mean", task.mean, (self.task_dim,))
+        return linear_cause(self.C.to(task.mean.dtype), task)
+
+
+def _as_task(task: DiagGaussian | Tensor, var: Tensor | None) -> DiagGaussian:
+    """Accept a task belief ``DiagGaussian(mean, var)`` or the older ``(mean, var)`` arguments."""
+    if isinstance(task, DiagGaussian):
+        return task
+    if isinstance(task, Tensor) and isinstance(var, Tensor):
+        return DiagGaussian(task, var)
+    raise ValueError(f"task: expected a DiagGaussian (mean, var), got {type(task).__name__}")
 
 
 def _shifted_softplus(x: Tensor) -> Tensor:
@@ -295,7 +308,7 @@ class NonlinearTaskTransform(nn.Module):
     uncertainty) and :math:`g` never decreases when the task becomes more uncertain. The side
     covariance is left unchanged (the term is diagonal).
 
-    ``forward(mean, var: (..., task_dim)) -> FactorizedBelief`` with ``mean (..., 2m)``.
+    ``forward(task: DiagGaussian (..., task_dim)) -> FactorizedBelief`` with ``mean (..., 2m)``.
     """
 
     def __init__(self, task_dim: int, latent_obs_dim: int, hidden: Sequence[int] = (64,),
@@ -317,12 +330,12 @@ class NonlinearTaskTransform(nn.Module):
         h = _shifted_softplus(var @ F.softplus(self.w1_raw).to(var.dtype).T)
         return h @ F.softplus(self.w2_raw).to(var.dtype).T
 
-    def forward(self, mean: Tensor, var: Tensor) -> FactorizedBelief:
-        check_last_dims("mean", mean, (self.task_dim,))
-        check_last_dims("var", var, (self.task_dim,))
+    def forward(self, task: DiagGaussian | Tensor, var: Tensor | None = None) -> FactorizedBelief:
+        task = _as_task(task, var)
+        check_last_dims("task.mean", task.mean, (self.task_dim,))
         m = self.latent_obs_dim
-        g = self.var_term(var)
-        return FactorizedBelief(self.mean_net(mean), g[..., :m], g[..., m:], torch.zeros_like(g[..., :m]))
+        g = self.var_term(task.var)
+        return FactorizedBelief(self.mean_net(task.mean), g[..., :m], g[..., m:], torch.zeros_like(g[..., :m]))
 
 
 # ============================================================================= context encoders
@@ -336,7 +349,7 @@ class RecurrentContextEncoder(nn.Module):
     ``2m``). The initial belief :math:`\mathcal N(0, \text{init\_var}\,I)` plays the role of the
     task prior; absent (masked) elements skip the update.
 
-    ``forward(x: (..., N, in_dim), mask: (..., N) | None) -> (mean, var)``, each ``(..., latent_dim)``.
+    ``forward(x: (..., N, in_dim), mask: (..., N) | None) -> DiagGaussian``, ``(..., latent_dim)``.
     """
 
     def __init__(self, in_dim: int, latent_dim: int, hidden: Sequence[int] = (64,),
@@ -351,17 +364,13 @@ class RecurrentContextEncoder(nn.Module):
         self.rkn = RKN(ObservationEncoder(in_dim, m, hidden),
                        LocallyLinearTransition(m, num_basis, min(bandwidth, m - 1)), nn.Identity(), init_var)
 
-    def forward(self, x: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    def forward(self, x: Tensor, mask: Tensor | None = None) -> DiagGaussian:
         check_last_dims("x", x, (None, self.in_dim))
         lead, N = x.shape[:-2], x.shape[-2]
         flat = x.reshape(-1, N, self.in_dim)
-        fmask = None
-        if mask is not None:
-            fmask = check_mask("mask", mask, tuple(x.shape[:-1])).reshape(-1, N)
-            flat = torch.where(fmask[..., None], flat, torch.zeros((), dtype=x.dtype))
-        w, w_var = self.rkn.encoder(flat)
-        post = self.rkn.filter(w, w_var, fmask).posterior.at(-1)
-        return post.mean.reshape(*lead, -1), post.var.reshape(*lead, -1)
+        fmask = None if mask is None else check_mask("mask", mask, tuple(x.shape[:-1])).reshape(-1, N)
+        post = self.rkn.filter(self.rkn.encode(flat, fmask), fmask).posterior.at(-1)
+        return DiagGaussian(post.mean.reshape(*lead, -1), post.var.reshape(*lead, -1))
 
 
 # ============================================================================= the model
@@ -397,11 +406,14 @@ class HiPRSSM(nn.Module):
                                    getattr(getattr(context_encoder, "encoder", None), "in_dim", None))
 
     def infer_task(self, context: Tensor | None, context_mask: Tensor | None = None,
-                   batch_size: int | None = None, like: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                   batch_size: int | None = None, like: Tensor | None = None) -> DiagGaussian:
         r"""Context update: :math:`p(l\mid\mathcal C) = \mathcal N(\mu_l, \operatorname{diag}\sigma_l)`.
 
-        ``context: (B, N, F)``, ``context_mask: (B, N)``. ``context=None`` means an empty set:
-        the encoder's prior is returned for ``batch_size`` rows (dtype/device of ``like``).
+        ``context: (B, N, F)``, ``context_mask: (B, N)``; present elements must be finite (padded
+        ones may hold anything, NaN included: they are zeroed before the encoder sees them).
+        ``context=None`` means an empty set: the encoder's prior is returned for ``batch_size``
+        rows (dtype/device of ``like``). Returns a :class:`pgm_wm.beliefs.DiagGaussian` (it unpacks
+        as ``mean, var``).
         """
         if context is None:
             if batch_size is None or like is None or self.context_dim is None:
@@ -411,50 +423,64 @@ class HiPRSSM(nn.Module):
         check_tensor("context", context, 2)
         if context_mask is not None:
             context_mask = check_mask("context_mask", context_mask, tuple(context.shape[:-1]))
-        return self.context_encoder(context, context_mask)
+            context = torch.where(context_mask[..., None], context,
+                                  torch.zeros((), dtype=context.dtype, device=context.device))
+        check_finite("context", context)
+        return DiagGaussian(*self.context_encoder(context, context_mask))
 
-    def task_cause(self, task_mean: Tensor, task_var: Tensor) -> FactorizedBelief:
+    def task_cause(self, task: DiagGaussian | Tensor, task_var: Tensor | None = None) -> FactorizedBelief:
         """The task's contribution to the prior (mean and factorized covariance), ``(B, 2m)``."""
-        return self.task_transform(task_mean, task_var)
+        return self.task_transform(_as_task(task, task_var))
 
     def _task(self, obs: Tensor, context: Tensor | None, context_mask: Tensor | None,
-              task: tuple[Tensor, Tensor] | None) -> tuple[Tensor, Tensor]:
+              task: DiagGaussian | tuple[Tensor, Tensor] | None) -> DiagGaussian:
         if task is not None:
             mean, var = task
             check_tensor("task", mean, 2)
             if mean.shape != var.shape or mean.shape[0] != obs.shape[0]:
                 raise ValueError(f"task: expected (mean, var) of shape (B={obs.shape[0]}, task_dim), "
                                  f"got {tuple(mean.shape)} and {tuple(var.shape)}")
+            if not bool(torch.isfinite(mean).all() & torch.isfinite(var).all()):
+                raise ValueError("task: mean and variances must be finite (got NaN or inf)")
             if bool((var < 0).any()):
                 raise ValueError("task: variances must be non-negative")
-            return mean, var
+            return DiagGaussian(mean, var)
         if context is not None and context.shape[0] != obs.shape[0]:
             raise ValueError(f"context: batch size {context.shape[0]} differs from obs' {obs.shape[0]}")
         return self.infer_task(context, context_mask, obs.shape[0], obs)
 
+    def causes(self, actions: Tensor, task: DiagGaussian, T: int) -> list[Cause]:
+        """The causes of the predict step: the ac-RKN's ``[control]`` plus ``[task]`` (the task
+        cause of Eq. hip-predict, known before the loop and constant over the ``T`` steps).
+        HiP-RSSM = ac-RKN + this last cause."""
+        return self.acrkn.causes(actions) + [over_time(self.task_cause(task), T)]
+
     def filter(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None, context: Tensor | None = None,
-               context_mask: Tensor | None = None, task: tuple[Tensor, Tensor] | None = None):
-        """Filter one window: ``(FilterOutput, task_mean, task_var)``. The task is inferred from the
-        context (or given as ``task = (mean, var)``) once and enters every predict step."""
-        check_tensor("obs", obs, 3)
-        t_mean, t_var = self._task(obs, context, context_mask, task)
-        cause = self.task_cause(t_mean, t_var)
-        out = self.acrkn.filter(obs, actions, mask, extra_causes_fn=lambda t, post: [cause])
-        return out, t_mean, t_var
+               context_mask: Tensor | None = None, task: DiagGaussian | tuple[Tensor, Tensor] | None = None
+               ) -> tuple[FilterResult, DiagGaussian]:
+        """Filter one window: ``(FilterResult, task)``. The task is inferred from the context (or
+        given as ``task = DiagGaussian(mean, var)``) once and enters every predict step."""
+        from .acrkn import check_sequences
+
+        mask = check_sequences(obs, actions, mask)
+        belief = self._task(obs, context, context_mask, task)
+        w = self.acrkn.rkn.encode(obs, mask)
+        out = self.acrkn.rkn.filter(w, mask=mask, causes=self.causes(actions, belief, obs.shape[1]))
+        return out, belief
 
     def predict(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None, context: Tensor | None = None,
-                context_mask: Tensor | None = None, task: tuple[Tensor, Tensor] | None = None
+                context_mask: Tensor | None = None, task: DiagGaussian | tuple[Tensor, Tensor] | None = None
                 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """``(mean, var, task_mean, task_var)``: next-observation predictions ``(B, T, do)`` and the task."""
         check_tensor("obs", obs, 3)
         if mask is not None:
             mask = check_mask("mask", mask, tuple(obs.shape[:2]))
-        out, t_mean, t_var = self.filter(obs, actions, mask, context, context_mask, task)
+        out, belief = self.filter(obs, actions, mask, context, context_mask, task)
         mean, var = self.acrkn.decode_predictions(out, obs, mask)
-        return mean, var, t_mean, t_var
+        return mean, var, belief.mean, belief.var
 
     def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None, context: Tensor | None = None,
-                context_mask: Tensor | None = None, task: tuple[Tensor, Tensor] | None = None
+                context_mask: Tensor | None = None, task: DiagGaussian | tuple[Tensor, Tensor] | None = None
                 ) -> tuple[Tensor, Tensor]:
         """Predict :math:`o_{t+1}` for every ``t`` of the window: ``(mean, var)`` each ``(B, T, do)``."""
         mean, var, _, _ = self.predict(obs, actions, mask, context, context_mask, task)

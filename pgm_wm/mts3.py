@@ -73,11 +73,13 @@ import torch
 from torch import Tensor, nn
 
 from ._checks import check_last_dims
-from .acrkn import AcRKN, LinearControl, MLPControl, ZeroControl, check_sequences
-from .aggregation import BayesianContextEncoder, SetEncoder, set_condition
-from .factorized import FactorizedBelief, factorized_predict, linear_cause
+from .acrkn import AcRKN, MLPControl, check_sequences
+from .aggregation import BayesianContextEncoder, SetEncoder, set_update
+from .beliefs import DiagGaussian, FactorizedBelief
+from .factorized import _observation, factorized_predict, linear_cause
+from .filtering import FilterResult
 from .metrics import denormalize, denormalize_var, sliding_window_nll, sliding_window_rmse
-from .rkn import BeliefDecoder, FilterOutput, LocallyLinearTransition, ObservationEncoder, band_mask
+from .rkn import BeliefDecoder, BlockMatrix, LocallyLinearTransition, ObservationEncoder, zero_missing
 from .training import multistep_predict, prediction_loss
 
 __all__ = [
@@ -87,8 +89,6 @@ __all__ = [
     "BlockMatrix",
     "set_block_init",
     "decouple_halves",
-    "factorized_linear_cause",
-    "diagonal_filter",
     "run_fast_level",
     "task_predict",
     "TaskSSM",
@@ -143,103 +143,49 @@ def _with_time(x: Tensor) -> Tensor:
 
 
 # ----------------------------------------------------------------------------- block matrices
-class BlockMatrix(nn.Module):
-    r"""A learned :math:`2m\times 2m` matrix :math:`M = [[M_{11}, M_{12}], [M_{21}, M_{22}]]` with
-    band blocks of half-width ``bandwidth`` (``0``: diagonal blocks, for which pushing a factorized
-    belief through :math:`M` is exact). Used for the task matrices :math:`C` and the abstract-action
-    matrix :math:`Y`. ``init = (d11, d12, d21, d22)`` sets each block to ``d * I``.
-    ``decoupled=True`` fixes :math:`M_{12} = M_{21} = 0` (the diagonal-covariance ablation).
-    """
-
-    def __init__(self, m: int, bandwidth: int = 0, init: Sequence[float] = (0.2, 0.0, 0.0, 0.2),
-                 decoupled: bool = False) -> None:
-        super().__init__()
-        if m <= 0:
-            raise ValueError(f"m: must be positive, got {m}")
-        if len(init) != 4:
-            raise ValueError(f"init: expected four numbers (d11, d12, d21, d22), got {init!r}")
-        self.m, self.bandwidth, self.decoupled = m, bandwidth, decoupled
-        self.register_buffer("band", band_mask(m, bandwidth).to(torch.get_default_dtype()), persistent=False)
-        eye = torch.eye(m)
-        self.M11 = nn.Parameter(float(init[0]) * eye)
-        self.M22 = nn.Parameter(float(init[3]) * eye)
-        if decoupled:
-            self.register_buffer("M12", torch.zeros(m, m))
-            self.register_buffer("M21", torch.zeros(m, m))
-        else:
-            self.M12 = nn.Parameter(float(init[1]) * eye)
-            self.M21 = nn.Parameter(float(init[2]) * eye)
-
-    def blocks(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """The four ``(m, m)`` blocks (band-masked)."""
-        band = self.band.to(self.M11.dtype)
-        return self.M11 * band, self.M12 * band, self.M21 * band, self.M22 * band
-
-    def dense(self) -> Tensor:
-        """:math:`M` as a dense ``(2m, 2m)`` matrix."""
-        b11, b12, b21, b22 = self.blocks()
-        return torch.cat([torch.cat([b11, b12], -1), torch.cat([b21, b22], -1)], -2)
-
-    def cause(self, belief: FactorizedBelief) -> FactorizedBelief:
-        """:func:`factorized_linear_cause` of ``belief`` through this matrix."""
-        return factorized_linear_cause(belief, *self.blocks())
-
-
-def set_block_init(transition: LocallyLinearTransition, init: Sequence[float]) -> LocallyLinearTransition:
-    r"""Set a constant (``num_basis=1``) transition to :math:`[[d_{11}I, d_{12}I], [d_{21}I, d_{22}I]]`.
+def set_block_init(matrix: BlockMatrix, init: Sequence[float]) -> BlockMatrix:
+    r"""Set a single (``num = 1``) :class:`pgm_wm.rkn.BlockMatrix` — e.g. a constant transition —
+    to :math:`[[d_{11}I, d_{12}I], [d_{21}I, d_{22}I]]`.
 
     Accounts for the identity that :class:`pgm_wm.rkn.LocallyLinearTransition` adds to the
-    diagonal blocks when ``add_identity`` is set. Returns ``transition`` (modified in place).
+    diagonal blocks when ``add_identity`` is set. Returns ``matrix`` (modified in place).
     """
-    if transition.num_basis != 1:
-        raise ValueError(f"transition: expected num_basis=1, got {transition.num_basis}")
+    if matrix.num != 1:
+        raise ValueError(f"transition: expected num_basis=1, got {matrix.num}")
     if len(init) != 4:
         raise ValueError(f"init: expected four numbers (d11, d12, d21, d22), got {init!r}")
-    m = transition.latent_obs_dim
-    eye = torch.eye(m, dtype=transition.basis_11.dtype)
-    shift = 1.0 if transition.add_identity else 0.0
+    eye = torch.eye(matrix.m, dtype=matrix.basis_11.dtype)
+    shift = 1.0 if getattr(matrix, "add_identity", False) else 0.0
     with torch.no_grad():
-        transition.basis_11.copy_(((float(init[0]) - shift) * eye)[None])
-        transition.basis_12.copy_((float(init[1]) * eye)[None])
-        transition.basis_21.copy_((float(init[2]) * eye)[None])
-        transition.basis_22.copy_(((float(init[3]) - shift) * eye)[None])
-    return transition
+        matrix.basis_11.copy_(((float(init[0]) - shift) * eye)[None])
+        matrix.basis_12.copy_((float(init[1]) * eye)[None])
+        matrix.basis_21.copy_((float(init[2]) * eye)[None])
+        matrix.basis_22.copy_(((float(init[3]) - shift) * eye)[None])
+    return matrix
 
 
-def decouple_halves(transition: LocallyLinearTransition) -> LocallyLinearTransition:
-    r"""Fix :math:`A_{12} = A_{21} = 0` (zero and frozen) in a transition.
+def decouple_halves(matrix: BlockMatrix) -> BlockMatrix:
+    r"""Fix :math:`M_{12} = M_{21} = 0` (zero and frozen) in a :class:`pgm_wm.rkn.BlockMatrix`
+    (e.g. a transition).
 
     With decoupled transitions and decoupled causes the side covariance :math:`\sigma^s` stays 0:
     the belief is diagonal, the update never reaches the lower (memory) half — the
-    "no memory half" ablation. Returns ``transition`` (modified in place).
+    "no memory half" ablation. Returns ``matrix`` (modified in place).
     """
     with torch.no_grad():
-        transition.basis_12.zero_()
-        transition.basis_21.zero_()
-    transition.basis_12.requires_grad_(False)
-    transition.basis_21.requires_grad_(False)
-    return transition
-
-
-def factorized_linear_cause(belief: FactorizedBelief, M11: Tensor, M12: Tensor, M21: Tensor,
-                            M22: Tensor) -> FactorizedBelief:
-    r"""The cause :math:`M l` of an independent factorized belief :math:`l\sim\mathcal N(\mu,\Sigma)`,
-    Eq. (gauss-marginal): mean :math:`M\mu`, covariance the block diagonals of :math:`M\Sigma M^\top`.
-
-    Same algebra as the predict step (:func:`pgm_wm.factorized.factorized_predict` with zero
-    noise), so it is exact for diagonal blocks. Used for :math:`C\,l_k` (Eq. mts3-fast-predict).
-    Shapes: belief ``(..., 2m)``, blocks ``(..., m, m)``.
-    """
-    zero = belief.mean.new_zeros(belief.mean.shape[-1])
-    return factorized_predict(belief, M11, M12, M21, M22, zero, validate=False)
+        matrix.basis_12.zero_()
+        matrix.basis_21.zero_()
+    matrix.basis_12.requires_grad_(False)
+    matrix.basis_21.requires_grad_(False)
+    return matrix
 
 
 def task_predict(
     post: FactorizedBelief,
-    X: tuple[Tensor, Tensor, Tensor, Tensor],
+    X: Tensor | tuple[Tensor, Tensor, Tensor, Tensor],
     S: Tensor,
     Y: Tensor | None = None,
-    alpha_mean: Tensor | None = None,
+    alpha: DiagGaussian | Tensor | None = None,
     alpha_var: Tensor | None = None,
     extra_causes: Sequence[FactorizedBelief] = (),
 ) -> FactorizedBelief:
@@ -252,14 +198,19 @@ def task_predict(
 
     Args:
         post: posterior of the previous window, mean ``(..., 2m)``.
-        X: the four ``(m, m)`` blocks of :math:`X`. S: noise variances ``(2m,)``, >= 0.
-        Y: dense ``(2m, d_alpha)`` (``None``: no abstract action). alpha_mean, alpha_var: ``(..., d_alpha)``.
+        X: ``(2m, 2m)`` or its four ``(m, m)`` blocks. S: noise variances ``(2m,)``, >= 0.
+        Y: dense ``(2m, d_alpha)`` (``None``: no abstract action).
+        alpha: the abstract action ``DiagGaussian(mean, var)``, ``(..., d_alpha)`` (or the older
+            ``alpha_mean, alpha_var`` pair).
     """
+    if isinstance(X, Tensor):
+        m = post.latent_obs_dim
+        X = (X[..., :m, :m], X[..., :m, m:], X[..., m:, :m], X[..., m:, m:])
     causes = list(extra_causes)
     if Y is not None:
-        if alpha_mean is None or alpha_var is None:
-            raise ValueError("alpha_mean: alpha_mean and alpha_var are required when Y is given")
-        causes.insert(0, linear_cause(Y, alpha_mean, alpha_var))
+        if alpha is None:
+            raise ValueError("alpha: the abstract action is required when Y is given")
+        causes.insert(0, linear_cause(Y, alpha if isinstance(alpha, DiagGaussian) else DiagGaussian(alpha, alpha_var)))
     return factorized_predict(post, *X, S, causes, validate=False)
 
 
@@ -274,7 +225,7 @@ class TaskSSM(nn.Module):
     \mathcal N(\mu_{\alpha_k}, \sigma_{\alpha_k})`, omitted with ``use_actions=False``), the task
     transition :math:`X` with noise :math:`S` (a constant
     :class:`pgm_wm.rkn.LocallyLinearTransition`), :math:`Y` and, if ``conditioned``, the matrix
-    :math:`C_i` through which the level above acts on this one.
+    :math:`C_i` through which the level above acts on this one (both :class:`pgm_wm.rkn.BlockMatrix`).
 
     Initial values (a documented choice): :math:`X = [[0, 0.2I], [-0.2I, 0]]` as in the authors'
     public code (spectral radius 0.2: an unobserved task relaxes within a window or two towards
@@ -342,16 +293,16 @@ class TaskSSM(nn.Module):
         return FactorizedBelief.isotropic(batch_shape, self.latent_obs_dim, self.init_var,
                                           dtype=like.dtype, device=like.device)
 
-    def encode_observations(self, obs_windows: Tensor) -> tuple[Tensor, Tensor]:
-        r"""Abstract observations :math:`(\beta_{k,t}, \nu_{k,t})`: ``(B, K, H, do) -> 2 x (B, K, H, m)``.
+    def encode_observations(self, obs_windows: Tensor) -> DiagGaussian:
+        r"""Abstract observations :math:`(\beta_{k,t}, \nu_{k,t})`: ``(B, K, H, do) -> DiagGaussian (B, K, H, m)``.
 
         Pass observations that are zero where missing; the mask is applied in :meth:`update`."""
         check_last_dims("obs_windows", obs_windows, (self.window, self.obs_dim))
         return self.obs_encoder(_with_time(obs_windows))
 
-    def encode_actions(self, action_windows: Tensor, present: Tensor | None = None) -> tuple[Tensor, Tensor] | None:
-        r"""Abstract actions, Eq. (mts3-abstract-action): ``(B, K, H, da) -> (mean, var)`` each
-        ``(B, K, 2m)``; ``present: (B, K, H)`` marks real (non-padding) steps. ``None`` without actions."""
+    def encode_actions(self, action_windows: Tensor, present: Tensor | None = None) -> DiagGaussian | None:
+        r"""Abstract actions, Eq. (mts3-abstract-action): ``(B, K, H, da) -> DiagGaussian (B, K, 2m)``;
+        ``present: (B, K, H)`` marks real (non-padding) steps. ``None`` without actions."""
         if self.action_encoder is None:
             return None
         check_last_dims("action_windows", action_windows, (self.window, self.action_dim))
@@ -360,11 +311,11 @@ class TaskSSM(nn.Module):
     def predict(
         self,
         post: FactorizedBelief,
-        alpha: tuple[Tensor, Tensor] | None,
+        alpha: DiagGaussian | tuple[Tensor, Tensor] | None,
         above: FactorizedBelief | None = None,
     ) -> FactorizedBelief:
-        """Task predict, Eq. (mts3-task-predict), with the abstract action ``alpha = (mean, var)``
-        (``(B, 2m)`` each) and, for a conditioned level, the prior of the level above."""
+        """Task predict, Eq. (mts3-task-predict), with the abstract action ``alpha`` (a
+        ``DiagGaussian``, ``(B, 2m)``) and, for a conditioned level, the prior of the level above."""
         extra: list[FactorizedBelief] = []
         if self.above_matrix is not None:
             if above is None:
@@ -372,143 +323,42 @@ class TaskSSM(nn.Module):
             extra.append(self.above_matrix.cause(above))
         elif above is not None:
             raise ValueError("above: this level was built with conditioned=False")
-        X = self.transition.blocks(post.mean)
+        X = self.transition.dense_matrix(post.mean)
         S = self.transition.trans_var
         if self.action_matrix is None:
             return task_predict(post, X, S, extra_causes=extra)
         if alpha is None:
-            raise ValueError("alpha: this level uses abstract actions; pass (mean, var)")
-        return task_predict(post, X, S, self.action_matrix.dense(), alpha[0], alpha[1], extra)
+            raise ValueError("alpha: this level uses abstract actions; pass DiagGaussian(mean, var)")
+        return task_predict(post, X, S, self.action_matrix.dense(), DiagGaussian(*alpha), extra_causes=extra)
 
-    def update(self, prior: FactorizedBelief, beta: Tensor, beta_var: Tensor, mask: Tensor | None) -> FactorizedBelief:
-        """Task update, Eq. (mts3-task-update): precision-form set conditioning on the window's
-        abstract observations ``beta, beta_var: (B, H, m)``, ``mask: (B, H)``."""
-        return set_condition(prior, beta, beta_var, mask, validate=False)
+    def update(self, prior: FactorizedBelief, observation: DiagGaussian | Tensor, *args: Tensor | None,
+               mask: Tensor | None = None) -> FactorizedBelief:
+        """Task update, Eq. (mts3-task-update): precision-form set conditioning
+        (:func:`pgm_wm.aggregation.set_update`) on the window's abstract observations
+        ``DiagGaussian(beta, beta_var)`` with ``(B, H, m)``, ``mask: (B, H)`` (the older
+        ``update(prior, beta, beta_var, mask)`` is accepted too)."""
+        obs, mask = _observation("observation", observation, args, mask)
+        return set_update(prior, obs, mask, validate=False)
 
 
 # ----------------------------------------------------------------------------- the fast level
-def _map_belief(b: FactorizedBelief, fn: Callable[[Tensor], Tensor]) -> FactorizedBelief:
-    return FactorizedBelief(fn(b.mean), fn(b.var_upper), fn(b.var_lower), fn(b.cov_side))
-
-
-def _cat_beliefs(beliefs: Sequence[FactorizedBelief], dim: int = -2) -> FactorizedBelief:
-    return FactorizedBelief(*(torch.cat([getattr(b, f) for b in beliefs], dim=dim)
-                              for f in ("mean", "var_upper", "var_lower", "cov_side")))
-
-
-def _map_output(out: FilterOutput, fn: Callable[[Tensor], Tensor]) -> FilterOutput:
-    return FilterOutput(*(_map_belief(getattr(out, f), fn) for f in ("prior", "posterior", "predicted")))
-
-
 def _check_fast(fast: AcRKN) -> None:
     if not isinstance(fast, AcRKN):
         raise ValueError(f"fast: expected an AcRKN, got {type(fast).__name__}")
-    if not isinstance(fast.control, (MLPControl, LinearControl, ZeroControl)):
+    if getattr(fast.control, "reads_state", True):
         raise ValueError("fast: the control model must not depend on the state (MLPControl, LinearControl "
                          "or ZeroControl), so that b(a) can be computed for a whole window at once")
 
 
-def diagonal_filter(
-    init: FactorizedBelief,
-    w: Tensor,
-    w_var: Tensor,
-    mask: Tensor,
-    A_diag: Sequence[Tensor],
-    trans_var: Tensor,
-    inputs: Tensor,
-    task: FactorizedBelief,
-) -> FilterOutput:
-    r"""The RKN filter loop (update, then predict) for a constant transition with **diagonal**
-    blocks, written elementwise. Same equations as :func:`pgm_wm.factorized.factorized_update`
-    (Eq. rkn-update) and :func:`pgm_wm.factorized.factorized_predict` (Eq. rkn-predict), exact for
-    this structure, tested equal to them, and about 3x fewer tensor operations per step.
-
-    The update is written with :math:`g = m_t\oslash(\sigma^u + \sigma^{obs})` (:math:`m_t\in\{0,1\}`
-    the mask), so a missing observation (:math:`g = 0`) leaves the belief unchanged without a branch
-    and an exact observation (:math:`\sigma^{obs} = 0`) is handled too:
-
-    .. math:: z^{u+} = z^u + \sigma^u\odot g\odot(w - z^u),\quad
-              z^{l+} = z^l + \sigma^s\odot g\odot(w - z^u),\quad
-              \sigma^{u+} = \sigma^u\odot(1 - \sigma^u\odot g),\quad
-              \sigma^{s+} = \sigma^s\odot(1 - \sigma^u\odot g),\quad
-              \sigma^{l+} = \sigma^l - \sigma^s\odot\sigma^s\odot g .
-
-    The predict adds the known inputs ``inputs: (N, T, 2m)`` and one constant independent cause
-    ``task`` (mean ``(N, 2m)`` added to the mean, its variances to the noise).
-
-    Args:
-        init: prior of the first step, batch ``(N,)``. w, w_var: ``(N, T, m)``. mask: ``(N, T)`` bool.
-        A_diag: the diagonals ``(a11, a12, a21, a22)`` of the blocks, each ``(m,)``. trans_var: ``(2m,)``.
-    """
-    m = init.latent_obs_dim
-    a11, a12, a21, a22 = A_diag
-    T = w.shape[1]
-    mf = mask.to(w.dtype).unsqueeze(-1)
-    w = torch.where(mask.unsqueeze(-1), w, torch.zeros((), dtype=w.dtype, device=w.device))
-    mean_in = inputs + task.mean.unsqueeze(-2)
-    in_u, in_l = mean_in[..., :m].unbind(1), mean_in[..., m:].unbind(1)
-    noise_u = trans_var[:m] + task.var_upper
-    noise_l = trans_var[m:] + task.var_lower
-    noise_s = task.cov_side
-    # coefficients of the covariance predict, Eq. (rkn-predict) with diagonal blocks
-    cuu, cus, cul = a11 * a11, 2.0 * a11 * a12, a12 * a12
-    clu, cls, cll = a21 * a21, 2.0 * a21 * a22, a22 * a22
-    csu, css, csl = a21 * a11, a22 * a11 + a21 * a12, a22 * a12
-    zu, zl = init.mean_upper, init.mean_lower
-    su, sl, ss = init.var_upper, init.var_lower, init.cov_side
-    ws, rs, ms = w.unbind(1), w_var.unbind(1), mf.unbind(1)
-    rec: list[list[Tensor]] = [[] for _ in range(15)]
-    for t in range(T):
-        g = ms[t] / (su + rs[t])
-        ge = g * (ws[t] - zu)
-        zu_p, zl_p = zu + su * ge, zl + ss * ge
-        keep = 1.0 - su * g  # = σobs / (σu + σobs) where observed, 1 where not
-        su_p, ss_p, sl_p = su * keep, ss * keep, sl - ss * ss * g
-        zu_n = a11 * zu_p + a12 * zl_p + in_u[t]
-        zl_n = a21 * zu_p + a22 * zl_p + in_l[t]
-        su_n = cuu * su_p + cus * ss_p + cul * sl_p + noise_u
-        sl_n = clu * su_p + cls * ss_p + cll * sl_p + noise_l
-        ss_n = csu * su_p + css * ss_p + csl * sl_p + noise_s
-        for lst, x in zip(rec, (zu, zl, su, sl, ss, zu_p, zl_p, su_p, sl_p, ss_p, zu_n, zl_n, su_n, sl_n, ss_n)):
-            lst.append(x)
-        zu, zl, su, sl, ss = zu_n, zl_n, su_n, sl_n, ss_n
-    st = [torch.stack(lst, dim=1) for lst in rec]
-
-    def belief(i: int) -> FactorizedBelief:
-        return FactorizedBelief(torch.cat([st[i], st[i + 1]], dim=-1), st[i + 2], st[i + 3], st[i + 4])
-
-    return FilterOutput(belief(0), belief(5), belief(10))
-
-
-def _window_filter(fast: AcRKN, w: Tensor, w_var: Tensor, observed: Tensor, b: Tensor, task: FactorizedBelief,
-                   init: FactorizedBelief | None) -> FilterOutput:
-    r"""The fast level over one window (or a batch of windows), Eq. (mts3-fast-predict): the control
-    term :math:`b(a_t)` (known, ``b: (N, H, 2m)``) and the task cause :math:`C l_k` (``task``, batch
-    ``(N,)``, constant over the window) enter every predict step as independent causes.
-    Diagonal blocks: :func:`diagonal_filter`; otherwise the RKN's general loop."""
-    tr = fast.transition
-    if init is None:
-        init = fast.rkn.initial_belief(w.shape[:1], w)
-    if tr.num_basis == 1 and tr.bandwidth == 0 and not getattr(fast.rkn, "diagonal_only", False):
-        blocks = [torch.diagonal(x) for x in tr.blocks(init.mean)]
-        return diagonal_filter(init, w, w_var, observed, blocks, tr.trans_var, b, task)
-    means = b + task.mean.unsqueeze(-2)
-
-    def causes_fn(t: int, post: FactorizedBelief) -> list[FactorizedBelief]:
-        return [FactorizedBelief(means[:, t], task.var_upper, task.var_lower, task.cov_side)]
-
-    return fast.rkn.filter(w, w_var, observed, causes_fn, init)
-
-
-def run_fast_level(fast: AcRKN, obs: Tensor, actions: Tensor, observed: Tensor, task: FactorizedBelief,
-                   window: int, detach_fast: bool = True, parallel_windows: bool = True) -> FilterOutput:
-    r"""Run the fast level over ``K`` windows, conditioned window by window on the task causes.
+def run_fast_level(fast: AcRKN, observation: DiagGaussian, observed: Tensor, causes: Sequence[FactorizedBelief],
+                   window: int, detach_fast: bool = True, parallel_windows: bool = True) -> FilterResult:
+    r"""Run the fast level (the RKN loop of ``fast``) over ``K`` windows of ``window`` steps with
+    the given causes, all known before the loop (``(B, K * H, ·)`` sequences: the control term
+    :math:`b(a_t)` and the window task cause :math:`C l_k` repeated over its window).
 
     Args:
         fast: the fast :class:`pgm_wm.acrkn.AcRKN` (state-independent control model).
-        obs: ``(B, K * H, do)``, zero where not observed; actions: ``(B, K * H, da)``;
-        observed: ``(B, K * H)`` bool.
-        task: the cause :math:`C l_k` for every window, batch ``(B, K)``.
+        observation: encoded ``DiagGaussian(w, w_var)``, ``(B, K * H, m)``; observed: ``(B, K * H)`` bool.
         detach_fast: cut gradients of the fast belief at window boundaries.
         parallel_windows: with ``detach_fast`` and gradients enabled, first run all windows in
             order **without** gradients to get each window's initial belief, then run all windows
@@ -519,35 +369,38 @@ def run_fast_level(fast: AcRKN, obs: Tensor, actions: Tensor, observed: Tensor, 
     Returns the fast beliefs ``(B, K * H, ...)``. The prior of the first step of window ``k`` is the
     prior after the last step of window ``k - 1``.
     """
-    B, Tp = obs.shape[:2]
+    B, Tp = observed.shape
     H = window
     K = Tp // H
-    if Tp != K * H or tuple(task.mean.shape[:2]) != (B, K):
-        raise ValueError(f"task: expected batch (B, K) = {(B, K)} for {Tp} steps and window {H}")
-    zeros = actions.new_zeros(*actions.shape[:-1], 2 * fast.latent_obs_dim)
-    b = fast.control(actions, zeros)
-    w, w_var = fast.encoder(obs)
-    at = lambda k: _map_belief(task, lambda x: x[:, k])  # noqa: E731
+    if Tp != K * H:
+        raise ValueError(f"observed: {Tp} steps are not a multiple of window={H}")
+    for i, c in enumerate(causes):
+        if not isinstance(c, FactorizedBelief) or tuple(c.mean.shape[:2]) != (B, Tp):
+            raise ValueError(f"causes: entry {i} must be a FactorizedBelief sequence of batch {(B, Tp)}")
+    rkn = fast.rkn
     sl = lambda x, k: x[:, k * H:(k + 1) * H]  # noqa: E731
+    window_of = lambda k: (observation.map(lambda x: sl(x, k)), sl(observed, k),  # noqa: E731
+                           [c.map(lambda x: sl(x, k)) for c in causes])
     if detach_fast and parallel_windows and torch.is_grad_enabled() and K > 1:
-        inits = [fast.rkn.initial_belief((B,), w)]
+        inits = [rkn.initial_belief((B,), observation.mean)]
         with torch.no_grad():
             for k in range(K - 1):
-                out = _window_filter(fast, sl(w, k), sl(w_var, k), sl(observed, k), sl(b, k), at(k), inits[-1])
-                inits.append(out.predicted.at(-1))
-        init = _map_belief(FactorizedBelief.stack(inits), lambda x: x.reshape(B * K, x.shape[-1]))
+                o, m, c = window_of(k)
+                inits.append(rkn.filter(o, mask=m, causes=c, init=inits[-1]).next_prior.at(-1))
         flat = lambda x: x.reshape(B * K, H, *x.shape[2:])  # noqa: E731
-        task_flat = _map_belief(task, lambda x: x.reshape(B * K, x.shape[-1]))
-        out = _window_filter(fast, flat(w), flat(w_var), flat(observed), flat(b), task_flat, init)
-        return _map_output(out, lambda x: x.reshape(B, K * H, x.shape[-1]))
-    outs: list[FilterOutput] = []
+        init = FactorizedBelief.stack(inits).map(lambda x: x.reshape(B * K, x.shape[-1]))
+        out = rkn.filter(observation.map(flat), mask=flat(observed), causes=[c.map(flat) for c in causes], init=init)
+        return out.map(lambda b: b.map(lambda x: x.reshape(B, K * H, x.shape[-1])))
+    outs: list[FilterResult] = []
     init: FactorizedBelief | None = None
     for k in range(K):
-        out = _window_filter(fast, sl(w, k), sl(w_var, k), sl(observed, k), sl(b, k), at(k), init)
-        last = out.predicted.at(-1)
+        o, m, c = window_of(k)
+        out = rkn.filter(o, mask=m, causes=c, init=init)
+        last = out.next_prior.at(-1)
         init = last.detach() if detach_fast else last
         outs.append(out)
-    return FilterOutput(*(_cat_beliefs([getattr(o, f) for o in outs]) for f in ("prior", "posterior", "predicted")))
+    return FilterResult(*(FactorizedBelief.cat([getattr(o, f) for o in outs])
+                          for f in ("prior", "posterior", "next_prior")))
 
 
 @dataclass(frozen=True)
@@ -565,144 +418,94 @@ def _prepare(obs: Tensor, actions: Tensor, mask: Tensor | None, multiple: int,
     mask = check_sequences(obs, actions, mask, obs_dim, action_dim)
     B, T = obs.shape[:2]
     observed = torch.ones(B, T, dtype=torch.bool, device=obs.device) if mask is None else mask
-    obs_in = torch.where(observed[..., None], obs, torch.zeros((), dtype=obs.dtype, device=obs.device))
+    obs_in = zero_missing(obs, observed)
     present = torch.ones(B, T, dtype=torch.bool, device=obs.device)
     return _Prepared(pad_to_windows(obs_in, multiple), pad_to_windows(actions, multiple),
                      pad_to_windows(observed, multiple), pad_to_windows(present, multiple), mask, T)
 
 
-def _finish(fast: AcRKN, out: FilterOutput, obs: Tensor, p: _Prepared, min_var: float
-            ) -> tuple[FilterOutput, Tensor, Tensor]:
-    """Cut the padding and decode the predicted beliefs; add the variance floor ``min_var``."""
-    out = _map_output(out, lambda x: x[:, : p.T])
-    mean, var = fast.decode_predictions(out, obs, p.mask)
-    return out, mean, var + min_var if min_var else var
-
-
-# ----------------------------------------------------------------------------- the 2-level model
+# ----------------------------------------------------------------------------- the model
 @dataclass(frozen=True)
 class MTS3Output:
-    """Everything a 2-level MTS3 run produced.
+    r"""Everything an MTS3 run produced.
 
     Attributes:
         mean, var: predictions of :math:`o_{t+1}` at index ``t``, ``(B, T, do)``.
-        fast: the fast beliefs (``prior``, ``posterior``, ``predicted``), each ``(B, T, ...)``.
-        task_prior: :math:`p(l_k\\mid\\beta_{<k}, \\alpha_{\\le k})`, ``mean: (B, K, 2m)``.
-        task_posterior: :math:`p(l_k\\mid\\beta_{\\le k}, \\alpha_{\\le k})`, ``mean: (B, K, 2m)``.
-        alpha_mean, alpha_var: abstract actions ``(B, K, 2m)`` (``None`` without actions).
+        fast: the fast beliefs (:class:`pgm_wm.filtering.FilterResult`), each ``(B, T, ...)``.
+        task_priors, task_posteriors: per task level ``i`` (ordered from the level just above the
+            fast one), :math:`p(l_k\mid\beta_{<k}, \alpha_{\le k})` and
+            :math:`p(l_k\mid\beta_{\le k}, \alpha_{\le k})` with ``mean: (B, K_i, 2m)``.
+        abstract_actions: per task level, ``DiagGaussian`` ``(B, K_i, 2m)`` or ``None``.
+
+    ``task_prior``, ``task_posterior``, ``alpha_mean``, ``alpha_var``: those of the first task level.
     """
 
     mean: Tensor
     var: Tensor
-    fast: FilterOutput
-    task_prior: FactorizedBelief
-    task_posterior: FactorizedBelief
-    alpha_mean: Tensor | None
-    alpha_var: Tensor | None
+    fast: FilterResult
+    task_priors: list[FactorizedBelief]
+    task_posteriors: list[FactorizedBelief]
+    abstract_actions: list[DiagGaussian | None]
+
+    @property
+    def task_prior(self) -> FactorizedBelief:
+        return self.task_priors[0]
+
+    @property
+    def task_posterior(self) -> FactorizedBelief:
+        return self.task_posteriors[0]
+
+    @property
+    def alpha_mean(self) -> Tensor | None:
+        a = self.abstract_actions[0]
+        return None if a is None else a.mean
+
+    @property
+    def alpha_var(self) -> Tensor | None:
+        a = self.abstract_actions[0]
+        return None if a is None else a.var
 
 
 class MTS3(nn.Module):
-    """Two-level MTS3: a fast ac-RKN conditioned, window by window, on a slow task SSM.
+    r"""MTS3 with N levels: the fast ac-RKN plus a list of task levels ``levels[0..N-2]`` with
+    windows :math:`H_1 < H_2 < \dots`, each a multiple of the previous one. With one task level
+    this is the two-level MTS3 of the thesis; with none it is the ac-RKN.
+
+    The fast level is the ac-RKN with one more cause (Eq. mts3-fast-predict): its causes are
+    ``fast.causes(actions) + [C l_k]``, the task matrix :math:`C` (``task_matrix``) applied to the
+    task **prior** of ``levels[0]`` for the window the step is in. All of them are known before the
+    fast loop (the slow levels never look at the fast beliefs), so :meth:`run` first runs the task
+    levels over all windows, then the fast level (:func:`run_fast_level`).
+
+    Task scheduling, walking through time in steps of :math:`H_1`: at the start of each of its
+    windows level :math:`i` predicts, top-down, conditioned on the current prior of level
+    :math:`i+1` (``levels[i].above_matrix``; the top level is unconditioned); at the end of each of
+    its windows it is updated, bottom-up, with its window's abstract observations.
 
     Args:
         fast: the fast level, an :class:`pgm_wm.acrkn.AcRKN` with a state-independent control model.
-        slow: the slow level, a :class:`TaskSSM` (not ``conditioned``); its ``window`` is :math:`H`.
-        task_matrix: :math:`C` of Eq. (mts3-fast-predict), a :class:`BlockMatrix`.
+        levels: a :class:`TaskSSM` (the two-level model) or a sequence of them (bottom to top).
+        task_matrix: :math:`C` of Eq. (mts3-fast-predict), a :class:`pgm_wm.rkn.BlockMatrix`
+            (required when there is a task level).
         detach_fast: cut the gradient of the fast belief between windows (default True).
         parallel_windows: see :func:`run_fast_level` (same values and gradients, faster training).
-        min_var: a floor added to the predictive variance (``0`` = none; the builders use
-            ``1e-4`` in normalized units), which keeps the NLL bounded when the decoder's variance
-            head collapses early in training.
+        min_var: the one variance floor of the predictions: sets ``fast.readout.var_floor``
+            (``None`` keeps the fast level's floor). Floors are not stacked.
 
-    ``forward(obs, actions, mask) -> (mean, var)`` follows the world-model interface of
-    :mod:`pgm_wm.baselines` (index ``t`` predicts :math:`o_{t+1}`); :meth:`run` returns all beliefs.
-    ``T`` need not be a multiple of :math:`H`: the last window is padded and the padding masked.
+    ``forward(obs, actions, mask) -> (mean, var)`` follows the world-model interface (index ``t``
+    predicts :math:`o_{t+1}`); :meth:`run` returns all beliefs. ``T`` need not be a multiple of the
+    windows: the last window is padded and the padding masked.
     """
 
-    def __init__(self, fast: AcRKN, slow: TaskSSM, task_matrix: BlockMatrix, detach_fast: bool = True,
-                 parallel_windows: bool = True, min_var: float = 0.0) -> None:
+    def __init__(self, fast: AcRKN, levels: TaskSSM | Sequence[TaskSSM] = (), task_matrix: BlockMatrix | None = None,
+                 detach_fast: bool = True, parallel_windows: bool = True, min_var: float | None = None) -> None:
         super().__init__()
         _check_fast(fast)
-        if min_var < 0:
-            raise ValueError(f"min_var: must be >= 0, got {min_var}")
-        self.min_var = float(min_var)
-        if not isinstance(slow, TaskSSM) or slow.above_matrix is not None:
-            raise ValueError("slow: expected an unconditioned TaskSSM (the top level)")
-        m = fast.latent_obs_dim
-        if slow.latent_obs_dim != m or task_matrix.m != m:
-            raise ValueError(f"task_matrix: fast, slow and C must share latent_obs_dim={m}")
-        if slow.obs_dim != fast.obs_dim:
-            raise ValueError("slow: obs_dim differs from the fast level's")
-        self.fast, self.slow, self.task_matrix = fast, slow, task_matrix
-        self.detach_fast, self.parallel_windows = detach_fast, parallel_windows
-        self.window = slow.window
-        self.obs_dim, self.action_dim = fast.obs_dim, slow.action_dim
-
-    def run(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> MTS3Output:
-        """Filter ``obs: (B, T, do)`` with ``actions: (B, T, da)``, ``mask: (B, T)`` (True = observed)."""
-        H = self.window
-        p = _prepare(obs, actions, mask, H, self.obs_dim, self.action_dim)
-        B, K = obs.shape[0], p.obs.shape[1] // H
-        observed_w = to_windows(p.observed, H)
-        beta, beta_var = self.slow.encode_observations(to_windows(p.obs, H))
-        alpha = self.slow.encode_actions(to_windows(p.actions, H), to_windows(p.present, H))
-        # slow level, window by window (Eqs. mts3-task-predict and mts3-task-update)
-        task_post = self.slow.initial_belief((B,), obs)
-        priors, posts = [], []
-        for k in range(K):
-            a_k = None if alpha is None else (alpha[0][:, k], alpha[1][:, k])
-            task_prior = self.slow.predict(task_post, a_k)  # uses beta_{<k}, alpha_{<=k} only
-            task_post = self.slow.update(task_prior, beta[:, k], beta_var[:, k], observed_w[:, k])
-            priors.append(task_prior)
-            posts.append(task_post)
-        task_prior, task_post = FactorizedBelief.stack(priors), FactorizedBelief.stack(posts)
-        # fast level: window k is conditioned on the task PRIOR of window k (Eq. mts3-fast-predict)
-        out = run_fast_level(self.fast, p.obs, p.actions, p.observed, self.task_matrix.cause(task_prior), H,
-                             self.detach_fast, self.parallel_windows)
-        out, mean, var = _finish(self.fast, out, obs, p, self.min_var)
-        return MTS3Output(mean, var, out, task_prior, task_post,
-                          None if alpha is None else alpha[0], None if alpha is None else alpha[1])
-
-    def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """``(mean, var)`` each ``(B, T, do)``; index ``t`` predicts ``obs[:, t + 1]``."""
-        out = self.run(obs, actions, mask)
-        return out.mean, out.var
-
-
-# ----------------------------------------------------------------------------- N levels
-@dataclass(frozen=True)
-class HierarchicalOutput:
-    """Output of :class:`HierarchicalMTS3`: predictions, fast beliefs, and per task level ``i``
-    the priors/posteriors ``(B, K_i, 2m)`` (lists ordered from the level just above the fast one)."""
-
-    mean: Tensor
-    var: Tensor
-    fast: FilterOutput
-    task_priors: list[FactorizedBelief]
-    task_posteriors: list[FactorizedBelief]
-
-
-class HierarchicalMTS3(nn.Module):
-    r"""N-level MTS3: the fast ac-RKN plus a list of task levels ``levels[0..N-2]`` with windows
-    :math:`H_1 < H_2 < \dots`, each a multiple of the previous one.
-
-    Scheduling (:meth:`run`), walking through time in steps of :math:`H_1`: at the start of each of
-    its windows level :math:`i` predicts, top-down, conditioned on the current prior of level
-    :math:`i+1` (``levels[i].above_matrix``; the top level is unconditioned); at the end of each of
-    its windows it is updated, bottom-up, with its window's abstract observations. The fast level
-    runs in windows of :math:`H_1` steps conditioned on the prior of ``levels[0]`` through
-    ``task_matrix``. With no task level this is the ac-RKN. ``detach_fast``, ``parallel_windows``
-    and ``min_var`` as in :class:`MTS3`.
-    """
-
-    def __init__(self, fast: AcRKN, levels: Sequence[TaskSSM], task_matrix: BlockMatrix | None = None,
-                 detach_fast: bool = True, parallel_windows: bool = True, min_var: float = 0.0) -> None:
-        super().__init__()
-        _check_fast(fast)
-        if min_var < 0:
-            raise ValueError(f"min_var: must be >= 0, got {min_var}")
-        self.min_var = float(min_var)
-        levels = list(levels)
+        if min_var is not None:
+            if min_var < 0:
+                raise ValueError(f"min_var: must be >= 0, got {min_var}")
+            fast.readout.var_floor = float(min_var)
+        levels = [levels] if isinstance(levels, TaskSSM) else list(levels)
         m = fast.latent_obs_dim
         for i, lev in enumerate(levels):
             if not isinstance(lev, TaskSSM):
@@ -721,30 +524,37 @@ class HierarchicalMTS3(nn.Module):
             raise ValueError(f"task_matrix: required (a BlockMatrix with m={m}) when there are task levels")
         self.fast, self.levels, self.task_matrix = fast, nn.ModuleList(levels), task_matrix
         self.detach_fast, self.parallel_windows = detach_fast, parallel_windows
-        self.obs_dim = fast.obs_dim
+        self.obs_dim, self.action_dim = fast.obs_dim, fast.control.action_dim
         self.windows = [lev.window for lev in levels]
 
-    def run(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> HierarchicalOutput:
-        """Filter ``obs: (B, T, do)``, ``actions: (B, T, da)``, ``mask: (B, T)``."""
+    @property
+    def min_var(self) -> float:
+        """The variance floor of the predictions (the fast level's readout floor)."""
+        return self.fast.readout.var_floor
+
+    @property
+    def slow(self) -> TaskSSM:
+        """The task level just above the fast one (the slow level of the two-level model)."""
+        if not len(self.levels):
+            raise ValueError("slow: this MTS3 has no task level")
+        return self.levels[0]
+
+    @property
+    def window(self) -> int:
+        """:math:`H_1`, the window of the first task level."""
+        return self.slow.window
+
+    def run_task_levels(self, p: "_Prepared") -> tuple[list[FactorizedBelief], list[FactorizedBelief],
+                                                       list[DiagGaussian | None]]:
+        """Eqs. (mts3-abstract-action), (mts3-task-predict), (mts3-task-update) for every level
+        and window; returns the stacked priors, posteriors and abstract actions per level."""
         levels = list(self.levels)
-        action_dim = self.fast.control.action_dim
-        if not levels:  # the ac-RKN: one window spanning the sequence, no task cause
-            p = _prepare(obs, actions, mask, obs.shape[1], self.obs_dim, action_dim)
-            m2 = 2 * self.fast.latent_obs_dim
-            zero = obs.new_zeros(obs.shape[0], 1, m2)
-            none = FactorizedBelief(zero, zero[..., : m2 // 2], zero[..., : m2 // 2], zero[..., : m2 // 2])
-            out = run_fast_level(self.fast, p.obs, p.actions, p.observed, none, p.T)
-            out, mean, var = _finish(self.fast, out, obs, p, self.min_var)
-            return HierarchicalOutput(mean, var, out, [], [])
-        p = _prepare(obs, actions, mask, self.windows[-1], self.obs_dim, action_dim)
-        B, Tp = obs.shape[0], p.obs.shape[1]
-        enc = []
-        for lev in levels:
-            H = lev.window
-            beta, beta_var = lev.encode_observations(to_windows(p.obs, H))
-            alpha = lev.encode_actions(to_windows(p.actions, H), to_windows(p.present, H))
-            enc.append((beta, beta_var, alpha, to_windows(p.observed, H)))
-        post = [lev.initial_belief((B,), obs) for lev in levels]
+        B, Tp = p.obs.shape[:2]
+        beta = [lev.encode_observations(to_windows(p.obs, lev.window)) for lev in levels]
+        alpha = [lev.encode_actions(to_windows(p.actions, lev.window), to_windows(p.present, lev.window))
+                 for lev in levels]
+        observed = [to_windows(p.observed, lev.window) for lev in levels]
+        post = [lev.initial_belief((B,), p.obs) for lev in levels]
         prior: list[FactorizedBelief | None] = [None] * len(levels)
         priors: list[list[FactorizedBelief]] = [[] for _ in levels]
         posts: list[list[FactorizedBelief]] = [[] for _ in levels]
@@ -752,26 +562,49 @@ class HierarchicalMTS3(nn.Module):
             for i in reversed(range(len(levels))):  # window starts: top-down predicts
                 if t0 % self.windows[i] == 0:
                     k = t0 // self.windows[i]
-                    alpha = enc[i][2]
-                    a_k = None if alpha is None else (alpha[0][:, k], alpha[1][:, k])
+                    a_k = None if alpha[i] is None else alpha[i][:, k]
                     prior[i] = levels[i].predict(post[i], a_k, prior[i + 1] if i + 1 < len(levels) else None)
                     priors[i].append(prior[i])
             t1 = t0 + self.windows[0]
             for i in range(len(levels)):  # window ends: bottom-up updates
                 if t1 % self.windows[i] == 0:
                     k = t1 // self.windows[i] - 1
-                    beta, beta_var, _, observed_w = enc[i]
-                    post[i] = levels[i].update(prior[i], beta[:, k], beta_var[:, k], observed_w[:, k])
+                    post[i] = levels[i].update(prior[i], beta[i][:, k], mask=observed[i][:, k])
                     posts[i].append(post[i])
-        task_priors = [FactorizedBelief.stack(x) for x in priors]
-        out = run_fast_level(self.fast, p.obs, p.actions, p.observed, self.task_matrix.cause(task_priors[0]),
-                             self.windows[0], self.detach_fast, self.parallel_windows)
-        out, mean, var = _finish(self.fast, out, obs, p, self.min_var)
-        return HierarchicalOutput(mean, var, out, task_priors, [FactorizedBelief.stack(x) for x in posts])
+        return ([FactorizedBelief.stack(x) for x in priors], [FactorizedBelief.stack(x) for x in posts], alpha)
+
+    def causes(self, actions: Tensor, task_prior: FactorizedBelief | None) -> list[FactorizedBelief]:
+        """The causes of the fast predict step: the ac-RKN's ``[control]`` plus, with a task level,
+        ``[C l_k]`` for the window of every step (``task_prior: (B, K, 2m)``, the first level's
+        priors). MTS3 fast level = ac-RKN + this last cause."""
+        causes = self.fast.causes(actions)
+        if task_prior is not None:
+            H = self.windows[0]
+            causes.append(self.task_matrix.cause(task_prior).map(lambda x: x.repeat_interleave(H, dim=1)))
+        return causes
+
+    def run(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> MTS3Output:
+        """Filter ``obs: (B, T, do)`` with ``actions: (B, T, da)``, ``mask: (B, T)`` (True = observed)."""
+        p = _prepare(obs, actions, mask, self.windows[-1] if self.windows else 1, self.obs_dim, self.action_dim)
+        task_priors, task_posts, alphas = self.run_task_levels(p) if self.windows else ([], [], [])
+        causes = self.causes(p.actions, task_priors[0] if task_priors else None)
+        window = self.windows[0] if self.windows else p.obs.shape[1]
+        w = DiagGaussian(*self.fast.encoder(p.obs))
+        out = run_fast_level(self.fast, w, p.observed, causes, window, self.detach_fast, self.parallel_windows)
+        out = out.map(lambda b: b.map(lambda x: x[:, : p.T]))
+        mean, var = self.fast.decode_predictions(out, obs, p.mask)
+        return MTS3Output(mean, var, out, task_priors, task_posts, alphas)
 
     def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """``(mean, var)`` each ``(B, T, do)``; index ``t`` predicts ``obs[:, t + 1]``."""
         out = self.run(obs, actions, mask)
         return out.mean, out.var
+
+
+HierarchicalMTS3 = MTS3
+"""Older name of :class:`MTS3` (which now has N levels)."""
+HierarchicalOutput = MTS3Output
+"""Older name of :class:`MTS3Output`."""
 
 
 # ----------------------------------------------------------------------------- imputation training

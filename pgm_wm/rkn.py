@@ -24,29 +24,55 @@ Positive quantities use ``elu(x) + 1`` (:func:`elup1`), which is smooth, equals 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Callable, Protocol, Sequence, Union
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ._checks import check_last_dims, check_mask, check_tensor
+from ._checks import check_finite, check_last_dims, check_mask, check_tensor
+from .beliefs import DiagGaussian, FactorizedBelief
+from .factorized import (
+    _observation,
+    _update_core,
+    diagonal_factorized_filter,
+    factorized_filter,
+    factorized_predict_from_matrix,
+)
+from .filtering import FilterResult, filter_loop
 from .layers import mlp
-from .factorized import FactorizedBelief, factorized_predict_from_matrix, factorized_update
 
 __all__ = [
     "elup1",
     "mlp",
     "band_mask",
+    "BlockMatrix",
     "LocallyLinearTransition",
     "ObservationEncoder",
     "BeliefDecoder",
-    "FilterOutput",
+    "StateCause",
+    "Cause",
+    "over_time",
+    "zero_missing",
     "RKN",
 ]
 
-CausesFn = Callable[[int, FactorizedBelief], Sequence[FactorizedBelief]]
+
+class StateCause(Protocol):
+    """A cause that reads the posterior of the step it follows (only
+    :class:`pgm_wm.acrkn.LocallyLinearControl` does): ``cause(t, posterior_t) -> FactorizedBelief``."""
+
+    def __call__(self, t: int, posterior: FactorizedBelief) -> FactorizedBelief: ...
+
+
+Cause = Union[FactorizedBelief, StateCause]
+"""One additive independent cause of the predict step: either known before the loop (a
+:class:`FactorizedBelief` stacked over time, ``mean: (B, T, 2m)``) or a :class:`StateCause`."""
+
+
+def over_time(cause: FactorizedBelief, T: int) -> FactorizedBelief:
+    """A cause constant over a window (batch ``(B,)``, e.g. a task) as a sequence ``(B, T, ·)``."""
+    return cause.map(lambda x: x.unsqueeze(-2).expand(*x.shape[:-1], T, x.shape[-1]))
 
 
 def elup1(x: Tensor) -> Tensor:
@@ -73,17 +99,76 @@ def _inv_softplus(y: float) -> float:
     return y + math.log(-math.expm1(-y))
 
 
-class LocallyLinearTransition(nn.Module):
+class BlockMatrix(nn.Module):
+    r"""``num`` learned :math:`2m\times 2m` matrices :math:`M = [[M_{11}, M_{12}], [M_{21}, M_{22}]]`
+    with band blocks of half-width ``bandwidth`` (``0``: diagonal blocks, for which pushing a
+    factorized belief through :math:`M` is exact). The one block-matrix parametrisation of the
+    book: the RKN's basis matrices :math:`A^{(k)}` (:class:`LocallyLinearTransition`), the MTS3 task
+    transition :math:`X`, abstract-action matrix :math:`Y` and task matrices :math:`C`.
+
+    Parameters ``basis_11 .. basis_22``: ``(num, m, m)``, each block initialised to ``d * I`` with
+    ``init = (d11, d12, d21, d22)``. ``decoupled=True`` fixes :math:`M_{12} = M_{21} = 0` (zero and
+    frozen, :func:`pgm_wm.mts3.decouple_halves`; the diagonal-covariance ablation).
+    """
+
+    def __init__(self, m: int, bandwidth: int = 0, init: Sequence[float] = (0.2, 0.0, 0.0, 0.2),
+                 decoupled: bool = False, num: int = 1) -> None:
+        super().__init__()
+        if m <= 0:
+            raise ValueError(f"m: must be positive, got {m}")
+        if num <= 0:
+            raise ValueError(f"num: must be positive, got {num}")
+        if len(init) != 4:
+            raise ValueError(f"init: expected four numbers (d11, d12, d21, d22), got {init!r}")
+        self.m, self.bandwidth, self.num, self.decoupled = m, bandwidth, num, bool(decoupled)
+        self.register_buffer("band", band_mask(m, bandwidth).to(torch.get_default_dtype()), persistent=False)
+        eye = torch.eye(m).expand(num, m, m)
+        self.basis_11 = nn.Parameter(float(init[0]) * eye.clone())
+        self.basis_12 = nn.Parameter(float(init[1]) * eye.clone())
+        self.basis_21 = nn.Parameter(float(init[2]) * eye.clone())
+        self.basis_22 = nn.Parameter(float(init[3]) * eye.clone())
+        if decoupled:
+            with torch.no_grad():
+                self.basis_12.zero_()
+                self.basis_21.zero_()
+            self.basis_12.requires_grad_(False)
+            self.basis_21.requires_grad_(False)
+
+    def dense_basis(self) -> Tensor:
+        """The band-masked matrices as dense ``(num, 2m, 2m)`` matrices."""
+        band = self.band.to(self.basis_11.dtype)
+        top = torch.cat([self.basis_11 * band, self.basis_12 * band], dim=-1)
+        bot = torch.cat([self.basis_21 * band, self.basis_22 * band], dim=-1)
+        return torch.cat([top, bot], dim=-2)
+
+    def dense(self) -> Tensor:
+        """:math:`M` as one dense ``(2m, 2m)`` matrix (``num == 1``)."""
+        if self.num != 1:
+            raise ValueError(f"num: dense() needs a single matrix, this module holds {self.num}")
+        return self.dense_basis()[0]
+
+    def cause(self, belief: FactorizedBelief) -> FactorizedBelief:
+        r"""The cause :math:`M l` of an independent factorized belief :math:`l\sim\mathcal N(\mu,\Sigma)`,
+        Eq. (gauss-marginal): mean :math:`M\mu`, covariance the block diagonals of :math:`M\Sigma M^\top`
+        (the predict arithmetic of Eq. rkn-predict with zero noise; exact for diagonal blocks)."""
+        zero = belief.mean.new_zeros(belief.mean.shape[-1])
+        return factorized_predict_from_matrix(belief, self.dense().to(belief.mean.dtype), zero, validate=False)
+
+
+class LocallyLinearTransition(BlockMatrix):
     r"""Locally linear transition model, Eq. (rkn-transition):
 
     .. math:: A_t = I + \sum_{k=1}^K \alpha_k(z_t^+)\,A^{(k)},\qquad
               \alpha(z) = \mathrm{softmax}(W z + c),
 
-    each :math:`A^{(k)} = [[A^{(k)}_{11}, A^{(k)}_{12}], [A^{(k)}_{21}, A^{(k)}_{22}]]` with band
-    blocks of half-width ``bandwidth``. Initialization: :math:`A^{(k)}_{11} = A^{(k)}_{22} = 0`,
-    :math:`A^{(k)}_{12} = c\,I`, :math:`A^{(k)}_{21} = -c\,I` with ``coupling`` :math:`c = 0.2`, so the
-    initial :math:`A = [[I, cI], [-cI, I]]` — the Euler step of a spring-damper-like oscillator
-    coupling the observed half to the memory half.
+    each :math:`A^{(k)}` a :class:`BlockMatrix` entry with band blocks of half-width ``bandwidth``.
+    Initialization: :math:`A^{(k)}_{11} = A^{(k)}_{22} = -d\,I`, :math:`A^{(k)}_{12} = c\,I`,
+    :math:`A^{(k)}_{21} = -c\,I` with ``coupling`` :math:`c = 0.2` and ``damping`` :math:`d = 0.05`, so
+    the initial :math:`A = [[(1-d)I, cI], [-cI, (1-d)I]]`: a damped Euler step of an oscillator
+    coupling the observed half to the memory half, with spectral radius
+    :math:`\sqrt{(1-d)^2 + c^2} = 0.971 < 1`. (The authors' code uses :math:`d = 0`, radius 1.02:
+    an untrained model's prior variance then grows like :math:`1.02^{2t}` and overflows after
+    about 2200 steps without observations.)
 
     ``num_basis = 1`` gives a constant (state-independent) linear transition; ``bandwidth = 0``
     gives diagonal blocks, for which the factorized predict is exact.
@@ -100,8 +185,8 @@ class LocallyLinearTransition(nn.Module):
         trans_var_init: float = 0.1,
         coupling: float = 0.2,
         add_identity: bool = True,
+        damping: float = 0.05,
     ) -> None:
-        super().__init__()
         m, K = latent_obs_dim, num_basis
         if m <= 0:
             raise ValueError(f"latent_obs_dim: must be positive, got {m}")
@@ -109,16 +194,22 @@ class LocallyLinearTransition(nn.Module):
             raise ValueError(f"num_basis: must be positive, got {K}")
         if trans_var_init <= 0:
             raise ValueError(f"trans_var_init: must be positive, got {trans_var_init}")
-        self.latent_obs_dim, self.num_basis, self.bandwidth = m, K, bandwidth
+        diag = -float(damping) if add_identity else 0.0
+        super().__init__(m, bandwidth, (diag, coupling, -coupling, diag), num=K)
+        self.latent_obs_dim, self.num_basis = m, K
         self.add_identity = add_identity
-        eye = torch.eye(m).expand(K, m, m)
-        self.basis_11 = nn.Parameter(torch.zeros(K, m, m))
-        self.basis_12 = nn.Parameter(coupling * eye.clone())
-        self.basis_21 = nn.Parameter(-coupling * eye.clone())
-        self.basis_22 = nn.Parameter(torch.zeros(K, m, m))
-        self.register_buffer("band", band_mask(m, bandwidth).to(torch.get_default_dtype()), persistent=False)
         self.coefficient_net = nn.Linear(2 * m, K) if K > 1 else None
         self.trans_var_raw = nn.Parameter(torch.full((2 * m,), _inv_softplus(trans_var_init)))
+
+    @property
+    def constant(self) -> bool:
+        """True if :math:`A_t` does not depend on the state (``num_basis == 1``)."""
+        return self.num_basis == 1
+
+    @property
+    def diagonal_blocks(self) -> bool:
+        """True if the four blocks of :math:`A_t` are diagonal (``bandwidth == 0``)."""
+        return self.bandwidth == 0
 
     @classmethod
     def fixed(cls, A: Tensor, trans_var: Tensor, bandwidth: int | None = None) -> "LocallyLinearTransition":
@@ -157,13 +248,6 @@ class LocallyLinearTransition(nn.Module):
         if self.coefficient_net is None:
             return torch.ones(*mean.shape[:-1], 1, dtype=mean.dtype, device=mean.device)
         return torch.softmax(self.coefficient_net(mean), dim=-1)
-
-    def dense_basis(self) -> Tensor:
-        """The band-masked basis matrices :math:`A^{(k)}` as dense ``(K, 2m, 2m)`` matrices."""
-        band = self.band.to(self.basis_11.dtype)
-        top = torch.cat([self.basis_11 * band, self.basis_12 * band], dim=-1)
-        bot = torch.cat([self.basis_21 * band, self.basis_22 * band], dim=-1)
-        return torch.cat([top, bot], dim=-2)
 
     def _mix(self, mean: Tensor, basis: Tensor) -> Tensor:
         """:math:`A_t` from a precomputed :meth:`dense_basis` (identity added if configured)."""
@@ -245,14 +329,14 @@ class ObservationEncoder(nn.Module):
         self.var_head = nn.Linear(feature_dim, latent_obs_dim)
         self.normalize_w = normalize_w
 
-    def forward(self, obs: Tensor) -> tuple[Tensor, Tensor]:
-        """``obs: (..., obs_dim)`` -> ``(w, w_var)`` each ``(..., m)``."""
+    def forward(self, obs: Tensor) -> DiagGaussian:
+        """``obs: (..., obs_dim)`` -> ``DiagGaussian(w, w_var)``, each ``(..., m)`` (unpacks as ``w, w_var``)."""
         check_last_dims("obs", obs, (self.obs_dim,))
         h = self.trunk(obs)
         w = self.w_head(h)
         if self.normalize_w:
             w = F.normalize(w, p=2, dim=-1, eps=1e-8)
-        return w, elup1(self.var_head(h))
+        return DiagGaussian(w, elup1(self.var_head(h)))
 
 
 class BeliefDecoder(nn.Module):
@@ -291,41 +375,39 @@ class BeliefDecoder(nn.Module):
         return self.mean_net(belief.mean), elup1(self.var_net(v))
 
 
-@dataclass(frozen=True)
-class FilterOutput:
-    """Beliefs of a filter run over ``T`` steps (every field ``(B, T, ...)``).
-
-    Attributes:
-        prior: :math:`p(z_t\\mid w_{<t})`, the belief before the update at step ``t``.
-        posterior: :math:`p(z_t\\mid w_{\\le t})`, after the update (equal to ``prior`` where masked).
-        predicted: :math:`p(z_{t+1}\\mid w_{\\le t})`, the prior of the next step (``prior`` shifted by
-            one, plus the final one-step-ahead prediction); decode this for prediction tasks.
-    """
-
-    prior: FactorizedBelief
-    posterior: FactorizedBelief
-    predicted: FactorizedBelief
-
-
 class RKN(nn.Module):
     r"""Recurrent Kalman Network: ``encoder -> [update, predict]* -> decoder``.
 
-    :meth:`filter` is the recurrent core and takes an optional ``causes_fn(t, posterior)``
-    returning extra independent causes for the predict step from ``t`` to ``t + 1`` (an action
-    term in Chapter 4, a latent task in Chapter 5). :meth:`forward` is the filtering model of
-    Chapter 3: it decodes posteriors.
+    :meth:`filter` is the recurrent core, the loop of :func:`pgm_wm.filtering.filter_loop` with
+    Eq. (rkn-update) and Eq. (rkn-predict). Its ``causes`` are the additive independent causes of
+    the predict step that later chapters declare (:data:`Cause`): an action term (Chapter 4), a
+    latent task (Chapters 5 and 6). Causes known before the loop are summed into one sequence
+    first; state-dependent ones are evaluated inside the loop. :meth:`forward` is the filtering
+    model of Chapter 3: it decodes posteriors.
+
+    With a constant transition, diagonal blocks and no state-dependent cause, the loop runs on
+    :func:`pgm_wm.factorized.diagonal_factorized_filter` (the elementwise fast path, tested equal
+    to the reference loop); a constant transition with band blocks uses
+    :func:`pgm_wm.factorized.factorized_filter`.
 
     ``diagonal_only=True`` is the ablation of Chapter 3: the side covariance :math:`\sigma^s` is
     forced to zero after every predict step (and in the initial belief), so the covariance is
     purely diagonal. The update, Eq. (rkn-update), then has zero gain for the lower half: the
     memory units and their variances are never corrected by an observation and can only follow
     the transition.
+
+    Args:
+        encoder: ``obs (..., do) -> DiagGaussian(w, w_var)`` (or a ``(w, w_var)`` pair), e.g.
+            :class:`ObservationEncoder`.
+        transition: a module with ``predictor()`` and ``latent_obs_dim``, e.g.
+            :class:`LocallyLinearTransition` or :class:`pgm_wm.acrkn.NormBoundedTransition`.
+        decoder: ``FactorizedBelief -> (mean, var)``, e.g. :class:`BeliefDecoder`.
     """
 
     def __init__(
         self,
         encoder: nn.Module,
-        transition: LocallyLinearTransition,
+        transition: nn.Module,
         decoder: nn.Module,
         init_var: float = 10.0,
         diagonal_only: bool = False,
@@ -333,6 +415,9 @@ class RKN(nn.Module):
         super().__init__()
         if init_var <= 0:
             raise ValueError(f"init_var: must be positive, got {init_var}")
+        if not callable(getattr(transition, "predictor", None)) or not hasattr(transition, "latent_obs_dim"):
+            raise ValueError("transition: expected a transition model with predictor() and latent_obs_dim, "
+                             f"got {type(transition).__name__}")
         self.encoder, self.transition, self.decoder = encoder, transition, decoder
         self.latent_obs_dim = transition.latent_obs_dim
         self.init_var = init_var
@@ -345,62 +430,83 @@ class RKN(nn.Module):
 
     def filter(
         self,
-        w: Tensor,
-        w_var: Tensor,
+        observation: DiagGaussian | Tensor,
+        *args: Tensor | None,
         mask: Tensor | None = None,
-        causes_fn: CausesFn | None = None,
+        causes: Sequence[Cause] = (),
         init: FactorizedBelief | None = None,
-    ) -> FilterOutput:
-        """Run update/predict over latent observations ``w, w_var: (B, T, m)``.
+    ) -> FilterResult[FactorizedBelief]:
+        """Run update/predict over latent observations ``DiagGaussian(w, w_var)``, ``(B, T, m)``.
 
-        ``mask: (B, T)`` bool, True = observed (False: posterior = prior). ``init`` defaults to
-        :meth:`initial_belief`.
+        Call as ``filter(DiagGaussian(w, w_var), mask, causes=..., init=...)``; the older form
+        ``filter(w, w_var, mask)`` is still accepted. ``mask: (B, T)`` bool, True = observed
+        (False: posterior = prior). ``causes``: see the class docstring; a known cause has
+        ``mean: (B, T, 2m)``. ``init`` defaults to :meth:`initial_belief`.
         """
-        check_tensor("w", w, 3)
-        B, T, m = w.shape
+        obs, mask = _observation("observation", observation, args, mask)
+        check_tensor("observation.mean", obs.mean, 3)
+        B, T, m = obs.mean.shape
         if m != self.latent_obs_dim:
-            raise ValueError(f"w: expected latent size {self.latent_obs_dim}, got {m}")
-        check_last_dims("w_var", w_var, (T, m))
-        if w_var.shape[0] != B:
-            raise ValueError(f"w_var: expected batch size {B}, got shape {tuple(w_var.shape)}")
+            raise ValueError(f"observation.mean: expected latent size {self.latent_obs_dim}, got {m}")
+        if T == 0:
+            raise ValueError("observation: need at least one time step, got T = 0")
         if mask is not None:
             mask = check_mask("mask", mask, (B, T))
         if init is not None and not isinstance(init, FactorizedBelief):
             raise ValueError(f"init: expected a FactorizedBelief, got {type(init).__name__}")
-        prior = self.initial_belief((B,), w) if init is None else init
+        prior = self.initial_belief((B,), obs.mean) if init is None else init
         if self.diagonal_only:
             prior = prior.drop_side()
-        # parameter-only work of the predict step is done once per sequence when available
-        predict = self.transition.predictor() if hasattr(self.transition, "predictor") else self.transition
-        priors, posts, preds = [], [], []
-        for t in range(T):
-            post = factorized_update(prior, w[:, t], w_var[:, t],
-                                     None if mask is None else mask[:, t], validate=False)
-            causes = causes_fn(t, post) if causes_fn is not None else ()
-            nxt = predict(post, causes)
-            if self.diagonal_only:
-                nxt = nxt.drop_side()
-            priors.append(prior)
-            posts.append(post)
-            preds.append(nxt)
-            prior = nxt
-        return FilterOutput(FactorizedBelief.stack(priors), FactorizedBelief.stack(posts),
-                            FactorizedBelief.stack(preds))
+        known = [c for c in causes if isinstance(c, FactorizedBelief)]
+        state = [c for c in causes if not isinstance(c, FactorizedBelief)]
+        for i, c in enumerate(known):
+            if c.latent_obs_dim != m or c.mean.ndim != 3 or tuple(c.mean.shape[:2]) != (B, T):
+                raise ValueError(f"causes: entry {i} must be a FactorizedBelief with mean (B, T, 2m) = "
+                                 f"{(B, T, 2 * m)}, got {tuple(c.mean.shape)}")
+        inputs = None
+        for c in known:  # causes known before the loop: one summed sequence
+            inputs = c if inputs is None else inputs + c
+        tr = self.transition
+        if not state and not self.diagonal_only and getattr(tr, "constant", False):
+            A = tr.dense_matrix(prior.mean)
+            fast = diagonal_factorized_filter if tr.diagonal_blocks else factorized_filter
+            return fast(prior, A, tr.trans_var, obs, mask, inputs, validate=False)
+        predict_step = tr.predictor()
 
-    def encode(self, obs: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """Encoder, Eq. (rkn-encoder): ``obs: (B, T, obs_dim)`` -> ``(w, w_var)`` each ``(B, T, m)``.
+        def predict(post: FactorizedBelief, t: int) -> FactorizedBelief:
+            step_causes = [c(t, post) for c in state]
+            if inputs is not None:
+                step_causes.append(inputs.at(t))
+            nxt = predict_step(post, step_causes)
+            return nxt.drop_side() if self.diagonal_only else nxt
+
+        update = lambda b, y, m_t: _update_core(b, y.mean, y.var, m_t)  # noqa: E731
+        return filter_loop(prior, update, predict, obs, mask)
+
+    def encode(self, obs: Tensor, mask: Tensor | None = None) -> DiagGaussian:
+        """Encoder, Eq. (rkn-encoder): ``obs: (B, T, obs_dim)`` -> ``DiagGaussian(w, w_var)``, ``(B, T, m)``.
 
         Missing frames (``mask`` False) are replaced by zeros before encoding, so that whatever
         the data holds there (NaN, stale frames) cannot reach the outputs or the gradients.
+        Present frames must be finite.
         """
         check_tensor("obs", obs, 3)
+        if obs.shape[1] == 0:
+            raise ValueError("obs: need at least one time step, got T = 0")
         if mask is not None:
             mask = check_mask("mask", mask, tuple(obs.shape[:2]))
-            obs = torch.where(mask[..., None], obs, torch.zeros((), dtype=obs.dtype, device=obs.device))
-        return self.encoder(obs)
+        obs = zero_missing(obs, mask)
+        return DiagGaussian(*self.encoder(obs))
 
     def forward(self, obs: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Filtering: ``obs: (B, T, obs_dim)`` -> decoded posterior ``(mean, var)`` per step."""
-        w, w_var = self.encode(obs, mask)
-        out = self.filter(w, w_var, mask)
+        out = self.filter(self.encode(obs, mask), mask)
         return self.decoder(out.posterior)
+
+
+def zero_missing(x: Tensor, mask: Tensor | None, name: str = "obs") -> Tensor:
+    """``x: (B, T, d)`` with the steps where ``mask: (B, T)`` is False set to zero (so NaN or stale
+    values there never reach a network or a gradient); the remaining entries must be finite."""
+    if mask is not None:
+        x = torch.where(mask[..., None], x, torch.zeros((), dtype=x.dtype, device=x.device))
+    return check_finite(name, x)

@@ -81,17 +81,26 @@ def test_mlp_control_ignores_state_and_zero_control_is_zero():
 
 # ------------------------------------------------------------------------- reduction to the RKN
 
-def test_zero_control_equals_rkn():
-    model = make_model(control="zero")
+@pytest.mark.parametrize("control", ["zero", "mlp", "local"])
+def test_dropping_the_control_cause_gives_the_rkn(control):
+    """ac-RKN = RKN + [control cause]: filtering with the causes list minus its last entry is
+    the Chapter-3 RKN exactly, for a known (MLP) and a state-dependent (locally linear) control."""
+    model = make_model(control=control)
     obs, act, mask = data()
-    out = model.filter(obs, act, mask)
-    w, w_var = model.encoder(torch.where(mask[..., None], obs, 0.0))
-    ref = model.rkn.filter(w, w_var, mask)
-    for name in ("prior", "posterior", "predicted"):
-        beliefs_equal(getattr(out, name), getattr(ref, name), rtol=0, atol=0)
-    # and no actions at all is the same model
-    out_none = model.filter(obs, None, mask)
-    beliefs_equal(out_none.predicted, ref.predicted, rtol=0, atol=0)
+    causes = model.causes(act)
+    assert len(causes) == 1
+    w = model.rkn.encode(obs, mask)
+    rkn_only = model.rkn.filter(w, mask=mask)
+    dropped = model.rkn.filter(w, mask=mask, causes=causes[:-1])
+    for name in ("prior", "posterior", "next_prior"):
+        beliefs_equal(getattr(dropped, name), getattr(rkn_only, name), rtol=0, atol=0)
+    full = model.filter(obs, act, mask)
+    if control == "zero":  # b = 0: the control cause is a zero point mass
+        beliefs_equal(full.next_prior, rkn_only.next_prior, rtol=0, atol=0)
+    else:
+        assert not torch.allclose(full.next_prior.mean, rkn_only.next_prior.mean)
+    # no actions at all: the same RKN
+    beliefs_equal(model.filter(obs, None, mask).next_prior, rkn_only.next_prior, rtol=0, atol=0)
 
 
 def test_control_term_enters_first_predict_mean_exactly():
@@ -101,7 +110,7 @@ def test_control_term_enters_first_predict_mean_exactly():
     ref = model.filter(obs, None, mask)
     post0 = out.posterior.at(0)
     b0 = model.control(act[:, 0], post0.mean)
-    torch.testing.assert_close(out.predicted.mean[:, 0], ref.predicted.mean[:, 0] + b0)
+    torch.testing.assert_close(out.next_prior.mean[:, 0], ref.next_prior.mean[:, 0] + b0)
 
 
 def test_linear_acrkn_equals_dense_kalman_filter_with_control():
@@ -121,7 +130,7 @@ def test_linear_acrkn_equals_dense_kalman_filter_with_control():
                        B=ctrl.B.detach(), u=u)
     nxt = Gaussian(torch.cat([kf.predicted.mean[:, 1:], kf.next_prior.mean[:, None]], 1),
                    torch.cat([kf.predicted.cov[:, 1:], kf.next_prior.cov[:, None]], 1))
-    dense = out.predicted.to_dense()
+    dense = out.next_prior.to_dense()
     torch.testing.assert_close(dense.mean, nxt.mean, rtol=1e-10, atol=1e-10)
     torch.testing.assert_close(dense.cov, nxt.cov, rtol=1e-10, atol=1e-10)
     torch.testing.assert_close(out.posterior.to_dense().cov, kf.filtered.cov, rtol=1e-10, atol=1e-10)
@@ -135,8 +144,8 @@ def test_action_changes_mean_not_covariance_constant_transition():
     out1 = model.filter(obs, act, mask)
     out2 = model.filter(obs, act + 3.0 * torch.randn_like(act), mask)
     for f in ("var_upper", "var_lower", "cov_side"):
-        assert torch.equal(getattr(out1.predicted, f), getattr(out2.predicted, f))
-    assert not torch.allclose(out1.predicted.mean, out2.predicted.mean)
+        assert torch.equal(getattr(out1.next_prior, f), getattr(out2.next_prior, f))
+    assert not torch.allclose(out1.next_prior.mean, out2.next_prior.mean)
     _, v1 = model(obs, act, mask)
     _, v2 = model(obs, act * -2.0, mask)
     assert torch.equal(v1, v2)
@@ -150,8 +159,8 @@ def test_action_leaves_one_predict_step_covariance_unchanged_locally_linear():
     out1 = model.filter(obs, act, mask)
     out2 = model.filter(obs, act.flip(-1) + 1.0, mask)
     for f in ("var_upper", "var_lower", "cov_side"):
-        assert torch.equal(getattr(out1.predicted, f)[:, 0], getattr(out2.predicted, f)[:, 0])
-    assert not torch.allclose(out1.predicted.mean[:, 0], out2.predicted.mean[:, 0])
+        assert torch.equal(getattr(out1.next_prior, f)[:, 0], getattr(out2.next_prior, f)[:, 0])
+    assert not torch.allclose(out1.next_prior.mean[:, 0], out2.next_prior.mean[:, 0])
 
 
 # --------------------------------------------------------------------------- readout / memory
@@ -161,7 +170,7 @@ def test_difference_readout_memory_rule_matches_recursion():
     model = make_model(diff_shift=shift, diff_scale=scale)
     obs, act, mask = data()
     mean, var = model(obs, act, mask)
-    d_mean, d_var = model.decoder(model.filter(obs, act, mask).predicted)
+    d_mean, d_var = model.decoder(model.filter(obs, act, mask).next_prior)
     B, T, _ = obs.shape
     for b in range(B):
         last = torch.zeros(3, dtype=DT)
@@ -177,7 +186,7 @@ def test_absolute_prediction_mode_is_the_decoder_output():
     model = make_model(predict_differences=False)
     obs, act, mask = data()
     mean, var = model(obs, act, mask)
-    d_mean, d_var = model.decoder(model.filter(obs, act, mask).predicted)
+    d_mean, d_var = model.decoder(model.filter(obs, act, mask).next_prior)
     torch.testing.assert_close(mean, d_mean)
     torch.testing.assert_close(var, d_var + model.readout.var_floor)
 
@@ -296,6 +305,17 @@ def test_bad_inputs_raise_value_error():
         AcRKN(ObservationEncoder(3, 4), LocallyLinearTransition(4), MLPControl(2, 5), BeliefDecoder(4, 3))
     with pytest.raises(ValueError, match="next_w"):
         InverseDynamicsHead(4, 2)(torch.zeros(3, 8), torch.zeros(3, 5))
+    # issue 13.7 / 13.10: non-finite actions and observations, T = 0
+    bad = act.clone()
+    bad[0, 3, 1] = float("inf")
+    with pytest.raises(ValueError, match="^actions: contains NaN"):
+        model(obs, bad, mask)
+    bad_obs = obs.clone()
+    bad_obs[mask] = float("nan")
+    with pytest.raises(ValueError, match="^obs: contains NaN"):
+        model(bad_obs, act, mask)
+    with pytest.raises(ValueError, match="^obs: need at least one time step"):
+        model(obs[:, :0], act[:, :0], mask[:, :0])
 
 
 # --------------------------------------------------------------------------- norm-bounded transition
@@ -340,8 +360,8 @@ def test_norm_bounded_acrkn_latent_stays_bounded_open_loop():
     obs, act, _ = data(T=60)
     mask = torch.zeros(3, 60, dtype=torch.bool)
     mask[:, :5] = True
-    grow = model.filter(obs, act, mask).predicted.mean.norm(dim=-1)
+    grow = model.filter(obs, act, mask).next_prior.mean.norm(dim=-1)
     model.rkn.transition = NormBoundedTransition(model.rkn.transition, 1.0)
-    keep = model.filter(obs, act, mask).predicted.mean.norm(dim=-1)
+    keep = model.filter(obs, act, mask).next_prior.mean.norm(dim=-1)
     assert bool((grow[:, -1] > 100 * grow[:, 5]).all())
     assert bool((keep[:, 4:].diff(dim=-1) <= 1e-9).all())  # non-expansive without inputs (b = 0)

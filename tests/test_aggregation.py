@@ -15,6 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pgm_wm.aggregation import (
+    set_update,
     BayesianContextEncoder,
     MaxPoolContextEncoder,
     MeanPoolContextEncoder,
@@ -33,6 +34,7 @@ from pgm_wm.context import (
     set_nll,
     transition_features,
 )
+from pgm_wm.beliefs import DiagGaussian
 from pgm_wm.factorized import FactorizedBelief, factorized_update
 from pgm_wm.gaussian import Gaussian, condition
 from pgm_wm.kalman import kf_update
@@ -280,39 +282,49 @@ def test_set_condition_broadcasts_prior_over_sets():
 def test_bad_input_raises_value_error_naming_the_argument():
     r = torch.randn(2, 3, 2)
     v = torch.rand(2, 3, 2) + 0.1
-    with pytest.raises(ValueError, match="r_var"):
+    with pytest.raises(ValueError, match="^r_var"):
         bayesian_aggregation(r, v.clone().index_fill_(1, torch.tensor([1]), 0.0))
-    with pytest.raises(ValueError, match="r_var"):
+    with pytest.raises(ValueError, match="^r_var"):
         bayesian_aggregation(r, -v)
-    with pytest.raises(ValueError, match="r_var"):
+    with pytest.raises(ValueError, match="^r_var"):
         bayesian_aggregation(r, v[:, :2])
-    with pytest.raises(ValueError, match="mask"):
+    with pytest.raises(ValueError, match="^mask"):
         bayesian_aggregation(r, v, torch.ones(2, 4, dtype=torch.bool))
-    with pytest.raises(ValueError, match="mask"):
+    with pytest.raises(ValueError, match="^mask"):
         bayesian_aggregation(r, v, torch.full((2, 3), 0.5))
-    with pytest.raises(ValueError, match="prior_var"):
+    with pytest.raises(ValueError, match="^prior_var"):
         bayesian_aggregation(r, v, prior_var=0.0)
-    with pytest.raises(ValueError, match="prior_mean"):
+    with pytest.raises(ValueError, match="^prior_mean"):
         bayesian_aggregation(r, v, prior_mean=torch.zeros(3))
-    with pytest.raises(ValueError, match="prior_mean"):
+    with pytest.raises(ValueError, match="^prior_mean"):
         bayesian_aggregation(r, v, prior_mean=torch.zeros(5, 2))
-    with pytest.raises(ValueError, match="r"):
+    with pytest.raises(ValueError, match="^r: expected at least 2"):
         bayesian_aggregation(torch.randn(3), torch.rand(3))
+    with pytest.raises(ValueError, match="^prior_mean: contains NaN"):
+        bayesian_aggregation(r, v, prior_mean=torch.tensor([0.0, float("nan")]))
+    with pytest.raises(ValueError, match="^r_var"):
+        bayesian_aggregation(r, v.clone().index_fill_(1, torch.tensor([0]), float("nan")))
+    with pytest.raises(ValueError, match="^observation"):
+        set_update(DiagGaussian.standard((2,), 2), (r, v))
+    with pytest.raises(ValueError, match="^prior"):
+        set_update(Gaussian(torch.zeros(2), torch.eye(2)), DiagGaussian(r, v))
+    with pytest.raises(ValueError, match="^prior.var"):
+        set_update(DiagGaussian(torch.zeros(2, 2), -torch.ones(2, 2)), DiagGaussian(r, v))
     prior = FactorizedBelief.isotropic((2,), 2)
-    with pytest.raises(ValueError, match="r"):
+    with pytest.raises(ValueError, match="^observation.mean"):
         set_condition(prior, torch.randn(2, 3, 3), torch.rand(2, 3, 3) + 0.1)
-    with pytest.raises(ValueError, match="r_var"):
+    with pytest.raises(ValueError, match="^r_var"):
         set_condition(prior, r, torch.zeros_like(v))
-    with pytest.raises(ValueError, match="prior"):
+    with pytest.raises(ValueError, match="^prior"):
         set_condition(Gaussian(torch.zeros(4), torch.eye(4)), r, v)
     bad = FactorizedBelief(prior.mean, prior.var_upper, prior.var_lower, prior.var_upper * 2)
-    with pytest.raises(ValueError, match="cov_side"):
+    with pytest.raises(ValueError, match="^prior.cov_side"):
         set_condition(bad, r, v)
-    with pytest.raises(ValueError, match="x"):
+    with pytest.raises(ValueError, match="^x"):
         SetEncoder(5, 2)(torch.randn(3, 4))
-    with pytest.raises(ValueError, match="min_var"):
+    with pytest.raises(ValueError, match="^min_var"):
         SetEncoder(5, 2, min_var=0.0)
-    with pytest.raises(ValueError, match="pool"):
+    with pytest.raises(ValueError, match="^pool"):
         from pgm_wm.aggregation import DeepSetContextEncoder
 
         DeepSetContextEncoder(5, 2, pool="sum")
@@ -342,7 +354,28 @@ def test_set_models_are_permutation_and_padding_invariant(cls):
     assert bool((v1 > 0).all())
 
 
-def test_set_encoder_variance_floor_and_bayesian_encoder_consistency():
+@pytest.mark.parametrize("cls", [BayesianContextEncoder, MeanPoolContextEncoder, MaxPoolContextEncoder])
+def test_nan_padding_gives_finite_gradients_after_an_adam_step(cls):
+    """Issue 13.3: padded rows are zeroed before any network sees them, so NaN padding can reach
+    neither the output nor a parameter gradient (before the fix one Adam step turned most
+    parameters into NaN)."""
+    torch.manual_seed(0)
+    model = cls(5, 2, hidden=(8,))
+    x = torch.randn(3, 6, 5)
+    mask = torch.rand(3, 6) < 0.6
+    mask[:, 0] = True
+    x[~mask] = float("nan")
+    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+    for _ in range(2):
+        opt.zero_grad()
+        mean, var = model(x, mask)
+        (mean.square().sum() + var.log().sum()).backward()
+        assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+        opt.step()
+    assert all(torch.isfinite(p).all() for p in model.parameters())
+
+
+def test_set_encoder_variance_floor_bounds_the_aggregated_precision():
     torch.manual_seed(1)
     model = BayesianContextEncoder(4, 3, hidden=(8,), min_var=0.01)
     with torch.no_grad():
@@ -351,9 +384,8 @@ def test_set_encoder_variance_floor_and_bayesian_encoder_consistency():
     r, r_var = model.encode(x)
     assert r.shape == (2, 5, 3) and bool((r_var >= 0.01).all())
     mean, var = model(x)
-    ref = bayesian_aggregation(r, r_var)
-    torch.testing.assert_close(mean, ref[0])
-    torch.testing.assert_close(var, ref[1])
+    # closed form of Eq. (ba-update) with the N(0, 1) prior: 1 / (1 + sum_n 1 / r_var_n)
+    torch.testing.assert_close(var, 1.0 / (1.0 + (1.0 / r_var).sum(-2)))
     assert bool((var >= 1.0 / (1.0 + 5 / 0.01) * 0.999).all())
 
 

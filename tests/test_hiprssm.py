@@ -113,15 +113,34 @@ def test_linear_task_with_zero_mean_and_vanishing_variance_is_the_acrkn():
     assert errs[2] < 1e-3 * errs[0]
 
 
+@pytest.mark.parametrize("transform", ["linear", "nonlinear"])
+def test_dropping_the_task_cause_gives_the_acrkn(transform):
+    """HiP-RSSM = ac-RKN + [task cause]: the causes list minus its last entry is the ac-RKN's
+    list, and filtering with it is the ac-RKN exactly (whatever the context)."""
+    obs, act, mask, ctx, cmask = window_batch()
+    hip = make_hip(transform=transform)
+    task = hip.infer_task(ctx, cmask)
+    causes = hip.causes(act, task, obs.shape[1])
+    assert len(causes) == len(hip.acrkn.causes(act)) + 1
+    w = hip.acrkn.rkn.encode(obs, mask)
+    dropped = hip.acrkn.rkn.filter(w, mask=mask, causes=causes[:-1])
+    ref = hip.acrkn.filter(obs, act, mask)
+    for name in ("prior", "posterior", "next_prior"):
+        for x, y in zip(getattr(dropped, name)._tensors(), getattr(ref, name)._tensors()):
+            assert torch.equal(x, y)
+    full, _ = hip.filter(obs, act, mask, ctx, cmask)
+    assert not torch.allclose(full.next_prior.mean, ref.next_prior.mean)
+
+
 def test_zero_C_gives_the_acrkn_whatever_the_context():
     obs, act, mask, ctx, cmask = window_batch()
     hip = make_hip(transform="linear")
     with torch.no_grad():
         hip.task_transform.C.zero_()
-    out, _, _ = hip.filter(obs, act, mask, ctx, cmask)
+    out, _ = hip.filter(obs, act, mask, ctx, cmask)
     ref = hip.acrkn.filter(obs, act, mask)
     for f in ("mean", "var_upper", "var_lower", "cov_side"):
-        torch.testing.assert_close(getattr(out.predicted, f), getattr(ref.predicted, f), rtol=0, atol=0)
+        torch.testing.assert_close(getattr(out.next_prior, f), getattr(ref.next_prior, f), rtol=0, atol=0)
 
 
 def test_nonlinear_task_with_zero_mean_net_and_zero_variance_is_the_acrkn():
@@ -204,7 +223,7 @@ def test_linear_hiprssm_equals_dense_kalman_filter_with_task_cause():
     y = torch.randn(B, T, m, generator=g, dtype=DT)
     u = torch.randn(B, T, da, generator=g, dtype=DT)
     mask = torch.rand(B, T, generator=g) < 0.6
-    out, _, _ = hip.filter(y, u, mask, task=(mu_l, var_l))
+    out, _ = hip.filter(y, u, mask, task=(mu_l, var_l))
     F = trans.dense_matrix(torch.zeros(2 * m, dtype=DT)).detach()
     H = torch.cat([torch.eye(m, dtype=DT), torch.zeros(m, m, dtype=DT)], 1)
     init = Gaussian(torch.zeros(2 * m, dtype=DT), 2.0 * torch.eye(2 * m, dtype=DT))
@@ -216,7 +235,7 @@ def test_linear_hiprssm_equals_dense_kalman_filter_with_task_cause():
                            B=torch.cat([ctrl.B.detach(), C], 1), u=u_aug)
         want_mean = torch.cat([kf.predicted.mean[1:], kf.next_prior.mean[None]])
         want_cov = torch.cat([kf.predicted.cov[1:], kf.next_prior.cov[None]])
-        dense = out.predicted.to_dense()
+        dense = out.next_prior.to_dense()
         torch.testing.assert_close(dense.mean[i], want_mean, rtol=1e-10, atol=1e-10)
         torch.testing.assert_close(dense.cov[i], want_cov, rtol=1e-10, atol=1e-10)
         torch.testing.assert_close(out.posterior.to_dense().cov[i], kf.filtered.cov, rtol=1e-10, atol=1e-10)
@@ -245,14 +264,14 @@ def test_task_mean_moves_prior_mean_and_task_variance_widens_prior():
     hip = make_hip(transform="linear")
     B = obs.shape[0]
     z = torch.zeros(B, 4, dtype=DT)
-    out0, _, _ = hip.filter(obs, act, mask, task=(z, z))
-    out1, _, _ = hip.filter(obs, act, mask, task=(z, torch.ones_like(z)))
+    out0, _ = hip.filter(obs, act, mask, task=(z, z))
+    out1, _ = hip.filter(obs, act, mask, task=(z, torch.ones_like(z)))
     # step 0: same posterior, prior variance grows by exactly diag(C diag(1) C^T) blocks
     cause = hip.task_cause(z, torch.ones_like(z))
-    torch.testing.assert_close(out1.predicted.at(0).var - out0.predicted.at(0).var, cause.var)
+    torch.testing.assert_close(out1.next_prior.at(0).var - out0.next_prior.at(0).var, cause.var)
     mu = torch.randn(B, 4, dtype=DT)
-    out2, _, _ = hip.filter(obs, act, mask, task=(mu, z))
-    torch.testing.assert_close(out2.predicted.at(0).mean - out0.predicted.at(0).mean,
+    out2, _ = hip.filter(obs, act, mask, task=(mu, z))
+    torch.testing.assert_close(out2.next_prior.at(0).mean - out0.next_prior.at(0).mean,
                                mu @ hip.task_transform.C.detach().T)
 
 
@@ -289,7 +308,7 @@ def test_recurrent_context_encoder_is_order_dependent_and_skips_masked_elements(
     # a masked element's value is never used
     ctx2 = ctx.clone()
     ctx2[~cmask] = 1e6
-    torch.testing.assert_close(enc(ctx2, cmask)[0], mean)
+    torch.testing.assert_close(enc(ctx2, cmask).mean, mean)
     # an empty set: the initial belief N(0, init_var I) only propagated through the transition
     pm, pv = enc(ctx, torch.zeros_like(cmask))
     torch.testing.assert_close(pm, torch.zeros_like(pm))

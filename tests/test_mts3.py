@@ -196,8 +196,8 @@ def test_fast_step_with_task_cause_matches_dense():
         nxt = marginalize_linear([(dense(A), post), (dense(C), l_dense)], noise_cov=torch.diag(q), offset=b[i, 0])
         close(out.posterior.to_dense().mean[i, 0], post.mean)
         close(out.posterior.to_dense().cov[i, 0], post.cov)
-        close(out.predicted.to_dense().mean[i, 0], nxt.mean)
-        close(out.predicted.to_dense().cov[i, 0], nxt.cov)  # C Σ_l Cᵀ included
+        close(out.next_prior.to_dense().mean[i, 0], nxt.mean)
+        close(out.next_prior.to_dense().cov[i, 0], nxt.cov)  # C Σ_l Cᵀ included
 
 
 def test_diagonal_filter_equals_general_rkn_loop():
@@ -218,7 +218,7 @@ def test_diagonal_filter_equals_general_rkn_loop():
     means = b + task.mean[:, None]
     want = fast.rkn.filter(w, w_var, mask, lambda t, post: [FactorizedBelief(
         means[:, t], task.var_upper, task.var_lower, task.cov_side)], init)
-    for part in ("prior", "posterior", "predicted"):
+    for part in ("prior", "posterior", "next_prior"):
         for f in ("mean", "var_upper", "var_lower", "cov_side"):
             close(getattr(getattr(got, part), f), getattr(getattr(want, part), f))
 
@@ -357,7 +357,7 @@ def test_diagonal_ablation_keeps_the_covariance_diagonal():
     model = perturb(build_mts3(DO, DA, M, 4, hidden=(8,), decoupled=True).to(DT))
     obs, act, mask = data(2, 12)
     out = model.run(obs, act, mask)
-    assert out.fast.predicted.cov_side.abs().max() == 0
+    assert out.fast.next_prior.cov_side.abs().max() == 0
     assert out.task_posterior.cov_side.abs().max() == 0
     assert not model.fast.transition.basis_12.requires_grad
 
@@ -380,7 +380,7 @@ def test_open_loop_predictions_stay_bounded_at_initialization():
     with torch.no_grad():
         out = model.run(obs, act, mask)
     assert torch.isfinite(out.mean).all() and out.mean.abs().max() < 10
-    assert out.fast.predicted.var_upper.max() < 100 and out.task_prior.var_upper.max() < 100
+    assert out.fast.next_prior.var_upper.max() < 100 and out.task_prior.var_upper.max() < 100
 
 
 # ----------------------------------------------------------------------------- masks and losses

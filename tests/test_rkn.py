@@ -10,6 +10,7 @@ import torch
 from torch import nn
 
 from pgm_wm.encoders import ConvTrunk
+from pgm_wm.beliefs import DiagGaussian
 from pgm_wm.factorized import FactorizedBelief, factorized_predict, factorized_update
 from pgm_wm.gaussian import Gaussian
 from pgm_wm.kalman import kalman_filter, kf_predict
@@ -71,8 +72,11 @@ def test_transition_initialization_and_structure():
     assert alpha.shape == (7, K)
     torch.testing.assert_close(alpha.sum(-1), torch.ones(7, dtype=D))
     eye = torch.eye(m, dtype=D)
-    expected = torch.cat([torch.cat([eye, 0.2 * eye], -1), torch.cat([-0.2 * eye, eye], -1)], -2)
+    expected = torch.cat([torch.cat([0.95 * eye, 0.2 * eye], -1), torch.cat([-0.2 * eye, 0.95 * eye], -1)], -2)
     torch.testing.assert_close(tr.dense_matrix(mean), expected.expand(7, -1, -1))
+    # issue 13.5: the initial transition is stable (spectral radius sqrt(0.95^2 + 0.2^2) = 0.971 < 1)
+    radius = torch.linalg.eigvals(tr.dense_matrix(mean[0])).abs().max()
+    torch.testing.assert_close(radius, torch.tensor((0.95**2 + 0.2**2) ** 0.5, dtype=D))
     torch.testing.assert_close(tr.trans_var, torch.full((2 * m,), 0.1, dtype=D))
     # after training-like perturbation, entries outside the band stay exactly zero (identity aside)
     perturb_(tr, 0.3)
@@ -103,8 +107,6 @@ def test_transition_forward_equals_block_diagonals_of_dense_predict():
     # block API gives the same
     out2 = factorized_predict(b, *tr.blocks(b.mean), tr.trans_var)
     torch.testing.assert_close(out2.to_dense().cov, out.to_dense().cov)
-    # the predictor closure equals forward
-    torch.testing.assert_close(tr.predictor()(b).mean, out.mean)
 
 
 def test_bad_constructor_arguments():
@@ -156,7 +158,7 @@ def test_rkn_with_one_diagonal_basis_reproduces_the_dense_kalman_filter():
     torch.testing.assert_close(post.cov, ref.filtered.cov, rtol=1e-10, atol=1e-10)
     torch.testing.assert_close(prior.mean, ref.predicted.mean.expand_as(prior.mean), rtol=1e-10, atol=1e-10)
     torch.testing.assert_close(prior.cov, ref.predicted.cov.expand_as(prior.cov), rtol=1e-10, atol=1e-10)
-    torch.testing.assert_close(out.predicted.at(-1).mean, ref.next_prior.mean, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(out.next_prior.at(-1).mean, ref.next_prior.mean, rtol=1e-10, atol=1e-10)
 
 
 def test_filter_masked_steps_posterior_equals_prior_and_predicted_shifts():
@@ -169,7 +171,7 @@ def test_filter_masked_steps_posterior_equals_prior_and_predicted_shifts():
     mask[0, 5:9] = False
     out = model.filter(w, w_var, mask)
     for f in ("mean", "var_upper", "var_lower", "cov_side"):
-        post, prior, pred = (getattr(x, f) for x in (out.posterior, out.prior, out.predicted))
+        post, prior, pred = (getattr(x, f) for x in (out.posterior, out.prior, out.next_prior))
         assert torch.equal(post[~mask], prior[~mask])
         assert not torch.equal(post[mask], prior[mask])
         assert torch.equal(pred[:, :-1], prior[:, 1:])
@@ -192,24 +194,33 @@ def test_filter_batch_equals_one_sequence_at_a_time():
         torch.testing.assert_close(one.posterior.cov_side[0], out.posterior.cov_side[i], rtol=1e-12, atol=1e-12)
 
 
-def test_causes_fn_adds_independent_terms():
+def test_causes_add_independent_terms_known_and_state_dependent():
+    """A known cause (a sequence) and a state cause (evaluated on each posterior) both enter the
+    predict step as independent additive terms; dropping them gives the plain RKN exactly."""
     model = small_rkn()
     gen = torch.Generator().manual_seed(6)
-    w = torch.randn(2, 5, 3, generator=gen, dtype=D)
-    w_var = 0.1 + torch.rand(2, 5, 3, generator=gen, dtype=D)
-    shift = torch.randn(2, 6, generator=gen, dtype=D)
+    obs = DiagGaussian(torch.randn(2, 5, 3, generator=gen, dtype=D), 0.1 + torch.rand(2, 5, 3, generator=gen, dtype=D))
+    shift = torch.randn(2, 5, 6, generator=gen, dtype=D)
+    known = FactorizedBelief.known(shift)
     seen = []
 
-    def causes_fn(t, post):
+    def state_cause(t, post):
         seen.append(t)
-        z = torch.zeros(2, 3, dtype=D)
-        return [FactorizedBelief(shift, z, z, z)]
+        return FactorizedBelief.known(0.5 * post.mean)
 
-    base = model.filter(w, w_var)
-    out = model.filter(w, w_var, causes_fn=causes_fn)
+    base = model.filter(obs)
+    out = model.filter(obs, causes=[known])
+    torch.testing.assert_close(out.next_prior.at(0).mean, base.next_prior.at(0).mean + shift[:, 0])
+    torch.testing.assert_close(out.next_prior.at(0).var_upper, base.next_prior.at(0).var_upper)
+    both = model.filter(obs, causes=[known, state_cause])
     assert seen == list(range(5))
-    # first prediction differs exactly by the known shift
-    torch.testing.assert_close(out.predicted.at(0).mean, base.predicted.at(0).mean + shift)
+    torch.testing.assert_close(both.next_prior.at(0).mean,
+                               base.next_prior.at(0).mean + shift[:, 0] + 0.5 * both.posterior.at(0).mean)
+    # the older positional form filter(w, w_var, mask) is the same call
+    old = model.filter(obs.mean, obs.var, None)
+    assert torch.equal(old.next_prior.mean, base.next_prior.mean)
+    with pytest.raises(ValueError, match="^causes"):
+        model.filter(obs, causes=[known.map(lambda x: x[:, :3])])
 
 
 def test_diagonal_only_never_updates_the_memory_half():
@@ -257,18 +268,29 @@ def test_cell_gradcheck():
 def test_filter_bad_inputs():
     model = small_rkn()
     w, v = torch.zeros(2, 4, 3, dtype=D), torch.ones(2, 4, 3, dtype=D)
-    with pytest.raises(ValueError, match="w"):
-        model.filter(torch.zeros(2, 4, 5, dtype=D), v)
-    with pytest.raises(ValueError, match="w_var"):
+    o = DiagGaussian(w, v)
+    with pytest.raises(ValueError, match="^observation.mean"):
+        model.filter(DiagGaussian(torch.zeros(2, 4, 5, dtype=D), torch.ones(2, 4, 5, dtype=D)))
+    with pytest.raises(ValueError, match="^observation.var"):
         model.filter(w, torch.ones(2, 5, 3, dtype=D))
-    with pytest.raises(ValueError, match="w_var"):
+    with pytest.raises(ValueError, match="^observation.var"):
         model.filter(w, torch.ones(3, 4, 3, dtype=D))
-    with pytest.raises(ValueError, match="mask"):
-        model.filter(w, v, torch.ones(2, 5, dtype=torch.bool))
-    with pytest.raises(ValueError, match="init"):
-        model.filter(w, v, init="prior")
-    with pytest.raises(ValueError, match="obs"):
+    with pytest.raises(ValueError, match="^mask"):
+        model.filter(o, torch.ones(2, 5, dtype=torch.bool))
+    with pytest.raises(ValueError, match="^init"):
+        model.filter(o, init="prior")
+    with pytest.raises(ValueError, match="^obs"):
         model(torch.zeros(2, 4, 7, dtype=D))
+    # issue 13.10: T = 0 names the observations; issue 13.7: NaN/inf in a present observation
+    with pytest.raises(ValueError, match="^observation: need at least one time step"):
+        model.filter(DiagGaussian(w[:, :0], v[:, :0]))
+    bad = torch.zeros(2, 4, 5, dtype=D)
+    bad[0, 1, 2] = float("nan")
+    with pytest.raises(ValueError, match="^obs: contains NaN"):
+        model(bad)
+    mask = torch.ones(2, 4, dtype=torch.bool)
+    mask[0, 1] = False
+    assert torch.isfinite(model(bad, mask)[0]).all()  # a missing step may hold anything
 
 
 # ------------------------------------------------------------------------------ end to end
