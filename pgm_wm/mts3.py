@@ -374,9 +374,10 @@ def run_fast_level(fast: AcRKN, observation: DiagGaussian, observed: Tensor, cau
     K = Tp // H
     if Tp != K * H:
         raise ValueError(f"observed: {Tp} steps are not a multiple of window={H}")
+    m = fast.latent_obs_dim
     for i, c in enumerate(causes):
-        if not isinstance(c, FactorizedBelief) or tuple(c.mean.shape[:2]) != (B, Tp):
-            raise ValueError(f"causes: entry {i} must be a FactorizedBelief sequence of batch {(B, Tp)}")
+        if not isinstance(c, FactorizedBelief) or tuple(c.mean.shape) != (B, Tp, 2 * m):
+            raise ValueError(f"causes: entry {i} must be a FactorizedBelief sequence with mean {(B, Tp, 2 * m)}")
     rkn = fast.rkn
     sl = lambda x, k: x[:, k * H:(k + 1) * H]  # noqa: E731
     window_of = lambda k: (observation.map(lambda x: sl(x, k)), sl(observed, k),  # noqa: E731

@@ -15,8 +15,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pgm_wm.aggregation import bayesian_aggregation
+from pgm_wm.acrkn import AcRKN, LocallyLinearControl
 from pgm_wm.baselines import TransformerBaseline, alibi_causal_bias
-from pgm_wm.factorized import FactorizedBelief, factorized_update
+from pgm_wm.beliefs import DiagGaussian
+from pgm_wm.factorized import (
+    FactorizedBelief,
+    diagonal_factorized_filter,
+    factorized_predict_from_matrix,
+    factorized_update,
+)
+from pgm_wm.filtering import FilterResult
 from pgm_wm.gaussian import Gaussian, condition, marginalize_linear
 from pgm_wm.mts3 import (
     MTS3,
@@ -26,8 +34,6 @@ from pgm_wm.mts3 import (
     build_fast_acrkn,
     build_hierarchical_mts3,
     build_mts3,
-    diagonal_filter,
-    factorized_linear_cause,
     run_fast_level,
     task_predict,
     time_encoding,
@@ -35,7 +41,7 @@ from pgm_wm.mts3 import (
     window_imputation_loss_fn,
     window_imputation_mask,
 )
-from pgm_wm.rkn import LocallyLinearTransition
+from pgm_wm.rkn import LocallyLinearTransition, over_time
 from pgm_wm.training import prediction_loss
 
 DT = torch.float64
@@ -175,52 +181,112 @@ def test_abstract_action_is_bayesian_aggregation_with_time_encoding():
 
 # ----------------------------------------------------------------------------- fast-scale algebra
 def test_fast_step_with_task_cause_matches_dense():
+    """One fast step of Eq. (mts3-fast-predict) on the diagonal fast path: update, then predict
+    with the control term and the task cause C l as independent causes = dense Gaussian algebra."""
     gen = torch.Generator().manual_seed(5)
     m, B = 3, 2
     init = rand_belief((B,), m, gen)
     A = diag_blocks(m, gen)
-    C = diag_blocks(m, gen)
+    C = BlockMatrix(m).to(DT)
+    with torch.no_grad():
+        for p, blk in zip((C.basis_11, C.basis_12, C.basis_21, C.basis_22), diag_blocks(m, gen)):
+            p.copy_(blk[None])
     q = torch.rand(2 * m, generator=gen, dtype=DT) + 0.05
     task_belief = rand_belief((B,), m, gen)
-    task = factorized_linear_cause(task_belief, *C)
     b = torch.randn(B, 1, 2 * m, generator=gen, dtype=DT)
     w = torch.randn(B, 1, m, generator=gen, dtype=DT)
     w_var = torch.rand(B, 1, m, generator=gen, dtype=DT) + 0.1
     mask = torch.tensor([[True], [False]])
-    out = diagonal_filter(init, w, w_var, mask, [torch.diagonal(x) for x in A], q, b, task)
+    inputs = FactorizedBelief.known(b) + over_time(C.cause(task_belief), 1)
+    out = diagonal_factorized_filter(init, dense(A), q, DiagGaussian(w, w_var), mask, inputs)
     H = torch.cat([torch.eye(m, dtype=DT), torch.zeros(m, m, dtype=DT)], -1)
     for i in range(B):
         prior = Gaussian(init.mean[i], init.to_dense().cov[i])
         post = condition(prior, H, torch.diag(w_var[i, 0]), w[i, 0]) if mask[i, 0] else prior
         l_dense = Gaussian(task_belief.mean[i], task_belief.to_dense().cov[i])
-        nxt = marginalize_linear([(dense(A), post), (dense(C), l_dense)], noise_cov=torch.diag(q), offset=b[i, 0])
+        nxt = marginalize_linear([(dense(A), post), (C.dense().detach(), l_dense)], noise_cov=torch.diag(q),
+                                 offset=b[i, 0])
         close(out.posterior.to_dense().mean[i, 0], post.mean)
         close(out.posterior.to_dense().cov[i, 0], post.cov)
-        close(out.next_prior.to_dense().mean[i, 0], nxt.mean)
-        close(out.next_prior.to_dense().cov[i, 0], nxt.cov)  # C Σ_l Cᵀ included
+        close(out.next_prior.to_dense().mean[i, 0].detach(), nxt.mean)
+        close(out.next_prior.to_dense().cov[i, 0].detach(), nxt.cov)  # C Σ_l Cᵀ included
 
 
-def test_diagonal_filter_equals_general_rkn_loop():
-    model = mts3()
+def reference_mts3(model, obs, act, mask):
+    """Explicit-loop reference of an N-level MTS3 (T a multiple of the top window, no padding):
+    the task levels are computed level by level from the top down (each window's prior reads the
+    prior of the enclosing window of the level above), then the fast level step by step with
+    factorized_update / factorized_predict_from_matrix and the causes [b(a_t), C l_k(t)]."""
+    B, T = mask.shape
+    obs0 = torch.where(mask[..., None], obs, torch.zeros((), dtype=obs.dtype))
+    levels = list(model.levels)
+    priors = [None] * len(levels)
+    posts = [None] * len(levels)
+    for i in reversed(range(len(levels))):
+        lev, H = levels[i], levels[i].window
+        beta = lev.encode_observations(to_windows(obs0, H))
+        alpha = lev.encode_actions(to_windows(act, H), torch.ones(B, T // H, H, dtype=torch.bool))
+        observed = to_windows(mask, H)
+        post, pr, po = lev.initial_belief((B,), obs), [], []
+        for k in range(T // H):
+            above = None if i == len(levels) - 1 else priors[i + 1][k * H // levels[i + 1].window]
+            prior = lev.predict(post, None if alpha is None else alpha[:, k], above)
+            post = lev.update(prior, beta[:, k], mask=observed[:, k])
+            pr.append(prior)
+            po.append(post)
+        priors[i], posts[i] = pr, po
     fast = model.fast
-    gen = torch.Generator().manual_seed(2)
-    B, T, m = 3, 9, M
-    init = rand_belief((B,), m, gen)
-    task = rand_belief((B,), m, gen)
-    w = torch.randn(B, T, m, generator=gen, dtype=DT)
-    w_var = torch.rand(B, T, m, generator=gen, dtype=DT) + 0.1
-    w_var[0, 2] = 0.0  # an exact observation (an encoder variance that underflowed) must not give NaN
-    mask = torch.rand(B, T, generator=gen) > 0.4
-    mask[0, 2] = True
-    b = torch.randn(B, T, 2 * m, generator=gen, dtype=DT)
-    blocks = [torch.diagonal(x) for x in fast.transition.blocks(init.mean)]
-    got = diagonal_filter(init, w, w_var, mask, blocks, fast.transition.trans_var, b, task)
-    means = b + task.mean[:, None]
-    want = fast.rkn.filter(w, w_var, mask, lambda t, post: [FactorizedBelief(
-        means[:, t], task.var_upper, task.var_lower, task.cov_side)], init)
-    for part in ("prior", "posterior", "next_prior"):
-        for f in ("mean", "var_upper", "var_lower", "cov_side"):
-            close(getattr(getattr(got, part), f), getattr(getattr(want, part), f))
+    w = DiagGaussian(*fast.encoder(obs0))
+    b = fast.control(act, torch.zeros(B, T, 2 * M, dtype=obs.dtype))
+    tr = fast.transition
+    prior = fast.rkn.initial_belief((B,), obs)
+    out = {"prior": [], "posterior": [], "next_prior": []}
+    for t in range(T):
+        post = factorized_update(prior, w.at(t), mask[:, t], validate=False)
+        causes = [FactorizedBelief.known(b[:, t])]
+        if levels:
+            causes.append(model.task_matrix.cause(priors[0][t // levels[0].window]))
+        nxt = factorized_predict_from_matrix(post, tr.dense_matrix(post.mean), tr.trans_var, causes, validate=False)
+        for k_, v in (("prior", prior), ("posterior", post), ("next_prior", nxt)):
+            out[k_].append(v)
+        prior = nxt
+    res = FilterResult(*(FactorizedBelief.stack(out[k_]) for k_ in ("prior", "posterior", "next_prior")))
+    mean, var = fast.decode_predictions(res, obs, mask)
+    return mean, var, [FactorizedBelief.stack(p) for p in priors], [FactorizedBelief.stack(p) for p in posts]
+
+
+# ----------------------------------------------------------------------------- reductions
+@pytest.mark.parametrize("windows", [[4], [2, 4], [2, 4, 8]])
+def test_mts3_equals_the_explicit_loop_reference(windows):
+    """One task level (the 2-level model of the thesis) and two or three task levels."""
+    torch.manual_seed(0)
+    model = perturb(build_hierarchical_mts3(DO, DA, M, windows, hidden=(8,)).to(DT))
+    obs, act, mask = data(2, 16)
+    out = model.run(obs, act, mask)
+    mean, var, priors, posts = reference_mts3(model, obs, act, mask)
+    close(out.mean, mean)
+    close(out.var, var)
+    for i in range(len(windows)):
+        for got, want in ((out.task_priors[i], priors[i]), (out.task_posteriors[i], posts[i])):
+            for x, y in zip(got._tensors(), want._tensors()):
+                close(x, y)
+
+
+def test_dropping_the_window_task_cause_gives_the_acrkn():
+    """MTS3 fast level = ac-RKN + [window task cause]: its causes minus the last one filter to
+    the ac-RKN's beliefs exactly, across window boundaries."""
+    model = mts3(H=4)
+    obs, act, mask = data(2, 16)
+    out = model.run(obs, act, mask)
+    causes = model.causes(act, out.task_prior)
+    assert len(causes) == len(model.fast.causes(act)) + 1
+    w = model.fast.rkn.encode(obs, mask)
+    dropped = run_fast_level(model.fast, w, mask, causes[:-1], 4)
+    ref = model.fast.filter(obs, act, mask)
+    for name in ("prior", "posterior", "next_prior"):
+        for x, y in zip(getattr(dropped, name)._tensors(), getattr(ref, name)._tensors()):
+            close(x, y, 1e-12)
+    assert not torch.allclose(out.fast.next_prior.mean, ref.next_prior.mean)
 
 
 # ----------------------------------------------------------------------------- reductions
@@ -245,18 +311,7 @@ def test_zero_task_matrix_gives_the_acrkn_across_windows():
     got = model(obs, act, mask)
     want = model.fast(obs, act, mask)
     close(got[0], want[0])
-    close(got[1], want[1] + model.min_var)  # the builder adds a 1e-4 variance floor
-
-
-def test_two_level_hierarchical_equals_mts3():
-    model = mts3(H=4)
-    hier = HierarchicalMTS3(model.fast, [model.slow], model.task_matrix, min_var=model.min_var)
-    obs, act, mask = data(3, 14)
-    a, b = model.run(obs, act, mask), hier.run(obs, act, mask)
-    close(a.mean, b.mean)
-    close(a.var, b.var)
-    close(a.task_prior.mean, b.task_priors[0].mean)
-    close(a.task_posterior.var_upper, b.task_posteriors[0].var_upper)
+    close(got[1], want[1])  # one variance floor (the fast readout's), not two stacked
 
 
 def test_three_levels_shapes_and_windows():
@@ -442,14 +497,19 @@ def test_invalid_inputs_raise_naming_the_argument():
         HierarchicalMTS3(fast, [TaskSSM(DO, DA, M, 3, conditioned=True), TaskSSM(DO, DA, M, 8)], BlockMatrix(M))
     with pytest.raises(ValueError, match="task_matrix"):
         HierarchicalMTS3(fast, [top])
-    with pytest.raises(ValueError, match="slow"):
+    with pytest.raises(ValueError, match="^levels"):
         MTS3(fast, TaskSSM(DO, DA, M, 4, conditioned=True), BlockMatrix(M))
     with pytest.raises(ValueError, match="task_matrix"):
         MTS3(fast, TaskSSM(DO, DA, M, 4), BlockMatrix(M + 1))
     with pytest.raises(ValueError, match="above"):
         top.predict(top.initial_belief((2,), obs.float()), None, top.initial_belief((2,), obs.float()))
-    with pytest.raises(ValueError, match="task"):
-        run_fast_level(fast, obs.float(), act.float(), mask, fast.rkn.initial_belief((2,), obs.float()), 4)
+    w = fast.rkn.encode(obs.float(), mask)
+    with pytest.raises(ValueError, match="^causes"):
+        run_fast_level(fast, w, mask, [fast.rkn.initial_belief((2,), obs.float())], 4)
+    with pytest.raises(ValueError, match="^fast"):
+        MTS3(AcRKN(fast.encoder, fast.transition, LocallyLinearControl(DA, M), fast.decoder), [])
+    with pytest.raises(ValueError, match="^obs: need at least one time step"):
+        build_mts3(DO, DA, M, 4)(obs[:, :0].float(), act[:, :0].float())
 
 
 # ----------------------------------------------------------------------------- Transformer baseline
