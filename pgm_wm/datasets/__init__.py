@@ -18,7 +18,9 @@ Datasets (see ``data/README.md`` for equations, sizes and provenance):
 Regenerate every file with ``python -m pgm_wm.datasets build``.
 """
 
+from ._io import DataFileError
 from .loader import ACTION_OPTIONS, DATASET_NAMES, SPLITS, SequenceData, data_dir, load
 from .pendulum import render_pendulum
 
-__all__ = ["load", "SequenceData", "DATASET_NAMES", "SPLITS", "ACTION_OPTIONS", "render_pendulum", "data_dir"]
+__all__ = ["load", "SequenceData", "DATASET_NAMES", "SPLITS", "ACTION_OPTIONS", "render_pendulum", "data_dir",
+           "DataFileError"]

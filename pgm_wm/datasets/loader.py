@@ -21,6 +21,9 @@ from __future__ import annotations
 
 import json
 import os
+import tokenize
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,7 +34,7 @@ from torch import Tensor
 
 from .._checks import check_last_dims
 from . import nile as _nile
-from ._io import META_KEY, SEP
+from ._io import META_KEY, SEP, DataFileError, verify_file
 from .pendulum import render_pendulum
 
 __all__ = ["DATASET_NAMES", "SPLITS", "ACTION_OPTIONS", "SequenceData", "load", "data_dir"]
@@ -184,28 +187,46 @@ def _check_name_split(name: str, split: str, action: str | None) -> None:
         raise ValueError(f"action: dataset {name!r} has a single action type; leave action=None")
 
 
+def restore_command(name: str) -> str:
+    """The shell command that rewrites the bundled file of dataset ``name``."""
+    return f"python -m pgm_wm.datasets build --only {name}"
+
+
 def _path(name: str) -> Path:
-    path = data_dir() / FILENAMES[name]
-    if not path.exists():
-        raise FileNotFoundError(
-            f"{path} not found; regenerate the bundled data with `python -m pgm_wm.datasets build`"
-        )
-    return path
+    """Path of the file of ``name``, verified against ``SHA256SUMS`` (cached by size and mtime)."""
+    return verify_file(data_dir() / FILENAMES[name], restore_command(name))
 
 
-def _read_split_npz(path: Path, split: str) -> tuple[dict[str, np.ndarray], dict]:
+# Everything numpy, zipfile, zlib and json raise on a damaged file.
+_READ_ERRORS = (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error,
+                tokenize.TokenError, SyntaxError, UnicodeDecodeError)
+
+
+def _unreadable(path: Path, name: str, err: Exception) -> DataFileError:
+    return DataFileError(f"{path}: cannot be read ({type(err).__name__}: {err}); "
+                         f"restore it with `{restore_command(name)}`")
+
+
+def _read_split_npz(path: Path, split: str, name: str) -> tuple[dict[str, np.ndarray], dict]:
     """Arrays of one split (keys without the ``<split>__`` prefix) and the file's metadata."""
     prefix = split + SEP
-    with np.load(path, allow_pickle=False) as data:
-        meta = json.loads(str(data[META_KEY][()]))
-        arrays = {key[len(prefix):]: data[key] for key in data.files if key.startswith(prefix)}
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            meta = json.loads(str(data[META_KEY][()]))
+            arrays = {key[len(prefix):]: data[key] for key in data.files if key.startswith(prefix)}
+    except _READ_ERRORS as err:
+        raise _unreadable(path, name, err) from err
     return arrays, meta
 
 
 def _assemble_numpy(name: str, split: str, action: str | None) -> tuple[dict[str, Any], dict]:
     """Numpy pieces of a split: obs, actions, valid, targets, hidden; plus metadata."""
     if name == "nile":
-        years, volume = _nile.read_nile_csv(_path(name))
+        path = _path(name)
+        try:
+            years, volume = _nile.read_nile_csv(path)
+        except _READ_ERRORS as err:
+            raise _unreadable(path, name, err) from err
         meta = {
             "dt": 1.0,
             "units": {"obs": "10^8 m^3 per year"},
@@ -226,7 +247,7 @@ def _assemble_numpy(name: str, split: str, action: str | None) -> tuple[dict[str
                   "targets": None, "hidden": {}}
         return pieces, meta
 
-    arrays, meta = _read_split_npz(_path(name), split)
+    arrays, meta = _read_split_npz(_path(name), split, name)
     hidden = {key[len("hidden" + SEP):]: val for key, val in arrays.items() if key.startswith("hidden" + SEP)}
     meta = dict(meta)
     meta["split_info"] = meta["splits"][split]
@@ -332,6 +353,12 @@ def load(name: str, split: str = "train", dtype: torch.dtype = torch.float32,
     Raises:
         ValueError: unknown ``name``, ``split`` or ``action`` (the message lists the valid ones)
             or a non-floating ``dtype``.
+        DataFileError: (a ``ValueError``) the file does not match ``data/SHA256SUMS`` or cannot
+            be read; the message names the file and the command that restores it.
+        FileNotFoundError: the file is missing (the message names the restoring command).
+
+    Every file is checked against ``SHA256SUMS`` before use; the verdict is cached by the
+    file's size and modification time, so only the first load of a file pays for hashing.
     """
     _check_name_split(name, split, action)
     if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
