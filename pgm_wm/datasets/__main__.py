@@ -19,12 +19,14 @@ def main(argv: list[str] | None = None) -> int:
     b = sub.add_parser("build", help="regenerate the data files and SHA256SUMS")
     b.add_argument("--only", nargs="+", choices=DATASET_NAMES, help="datasets to rebuild (default: all)")
     b.add_argument("--out", default=None, help="output folder (default: $PGM_WM_DATA or <repo>/data)")
+    b.add_argument("--pam-source", default=None,
+                   help="pam_arm_subset.npz to convert (default: $PGM_WM_PAM_SOURCE or shared/data/)")
     c = sub.add_parser("check", help="verify the files against SHA256SUMS")
     c.add_argument("--dir", default=None, help="data folder (default: $PGM_WM_DATA or <repo>/data)")
     sub.add_parser("report", help="print the linear checks of pgm_wm.datasets.diagnostics")
     args = parser.parse_args(argv)
     if args.command == "build":
-        build_all(args.only, args.out)
+        build_all(args.only, args.out, pam_source=args.pam_source)
         return 0
     if args.command == "report":
         from .diagnostics import report

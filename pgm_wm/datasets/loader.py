@@ -32,6 +32,7 @@ import torch
 from torch import Tensor
 
 from . import nile as _nile
+from . import pam_arm as _pam_arm
 from ._io import META_KEY, SEP, DataFileError, verify_file
 from .pendulum import render_pendulum
 from .sequences import SequenceData, _stats_numpy
@@ -39,7 +40,7 @@ from .sequences import SequenceData, _stats_numpy
 __all__ = ["DATASET_NAMES", "SPLITS", "ACTION_OPTIONS", "SequenceData", "load", "data_dir"]
 
 DATASET_NAMES: tuple[str, ...] = (
-    "nile", "tracking", "pendulum", "hysteresis_arm", "payload_arm", "drift_arm",
+    "nile", "tracking", "pendulum", "hysteresis_arm", "payload_arm", "drift_arm", "pam_arm",
 )
 
 SPLITS: dict[str, tuple[str, ...]] = {
@@ -49,11 +50,16 @@ SPLITS: dict[str, tuple[str, ...]] = {
     "hysteresis_arm": ("train", "valid", "test"),
     "payload_arm": ("train", "valid", "test", "interp", "extrap", "switching"),
     "drift_arm": ("train", "valid", "test"),
+    "pam_arm": ("train", "valid", "test"),
 }
+
+#: Real data: rebuilt from a source file outside the repository, not by a generator.
+REAL_DATASETS: tuple[str, ...] = ("nile", "pam_arm")
 
 ACTION_OPTIONS: dict[str, tuple[str, ...]] = {
     "payload_arm": ("pd_target", "torque"),
     "drift_arm": ("pd_target", "torque"),
+    "pam_arm": ("command", "increment"),
 }
 
 FILENAMES: dict[str, str] = {name: f"{name}.npz" for name in DATASET_NAMES}
@@ -90,6 +96,9 @@ def _check_name_split(name: str, split: str, action: str | None) -> None:
 
 def restore_command(name: str) -> str:
     """The shell command that rewrites the bundled file of dataset ``name``."""
+    if name == "pam_arm":
+        return (f"git checkout -- data/{FILENAMES[name]}` (or `python -m pgm_wm.datasets build --only "
+                f"pam_arm --pam-source <path to pam_arm_subset.npz>`)")
     return f"python -m pgm_wm.datasets build --only {name}"
 
 
@@ -146,6 +155,22 @@ def _assemble_numpy(name: str, split: str, action: str | None) -> tuple[dict[str
         obs = volume[None, :, None]
         pieces = {"obs": obs, "actions": None, "valid": np.ones(obs.shape[:2], dtype=bool),
                   "targets": None, "hidden": {}}
+        return pieces, meta
+
+    if name == "pam_arm":
+        path = _path(name)
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {key: data[key] for key in data.files if key != META_KEY}
+                meta = json.loads(str(data[META_KEY][()]))
+            pieces = _pam_arm.assemble(arrays, meta, split, action or meta["default_action"])
+        except _READ_ERRORS as err:
+            raise _unreadable(path, name, err) from err
+        meta["split_info"] = {**meta["splits"][split], "indices": pieces.pop("episode_index").tolist()}
+        meta["seed"] = meta["split_info"]["seed"]
+        meta["action"] = action or meta["default_action"]
+        meta["action_names"] = meta["action_options"][meta["action"]]
+        meta["units"] = {**meta["units"], "actions": meta["units"][meta["action"]]}
         return pieces, meta
 
     arrays, meta = _read_split_npz(_path(name), split, name)
