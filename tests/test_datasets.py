@@ -139,7 +139,11 @@ def test_shapes_dtypes_and_metadata(name, split):
     assert data.valid.shape == (n, T) and data.valid.dtype == torch.bool
     assert bool((data.obs[~data.valid] == 0).all())
     assert len(data.meta["obs_names"]) == d
-    assert data.meta["dt"] > 0 and "units" in data.meta and data.meta["description"]
+    if name == "pam_arm":  # real data whose source does not state the sampling period
+        assert data.meta["dt"] is None and data.meta["dt_note"]
+    else:
+        assert data.meta["dt"] > 0
+    assert "units" in data.meta and data.meta["description"]
     if data.actions is not None:
         assert data.actions.shape[:2] == (n, T) and data.actions.dtype == torch.float32
         assert len(data.meta["action_names"]) == data.actions.shape[2]
@@ -183,7 +187,7 @@ def _direct_stats(data: SequenceData) -> dict[str, np.ndarray]:
     x = obs[valid].astype(np.float64)
     out = {"obs_mean": x.mean(0), "obs_std": x.std(0)}
     if data.actions is not None:
-        act = data.actions.double().numpy().reshape(-1, data.actions.shape[-1])
+        act = data.actions.double().numpy()[valid]  # padding after a sequence's end is left out
         out["act_mean"], out["act_std"] = act.mean(0), act.std(0)
     if data.name != "pendulum":
         pair = valid[:, 1:] & valid[:, :-1]

@@ -15,10 +15,17 @@ Datasets (see ``data/README.md`` for equations, sizes and provenance):
   interpolation/extrapolation payloads and switching payloads;
 - ``drift_arm`` (ch. 6): the same arm over 40 s episodes with a slowly drifting payload.
 
+Your own data: ``SequenceData.from_arrays(obs, actions, valid)`` checks and wraps
+numpy arrays or tensors, :func:`split_sequences` splits them by sequence (seeded,
+statistics of the training part) and :func:`compute_stats` gives masked statistics.
+
 Regenerate every file with ``python -m pgm_wm.datasets build``.
 """
 
+from ._io import DataFileError
 from .loader import ACTION_OPTIONS, DATASET_NAMES, SPLITS, SequenceData, data_dir, load
 from .pendulum import render_pendulum
+from .sequences import compute_stats, split_sequences
 
-__all__ = ["load", "SequenceData", "DATASET_NAMES", "SPLITS", "ACTION_OPTIONS", "render_pendulum", "data_dir"]
+__all__ = ["load", "SequenceData", "compute_stats", "split_sequences", "DATASET_NAMES", "SPLITS", "ACTION_OPTIONS", "render_pendulum", "data_dir",
+           "DataFileError"]
