@@ -64,20 +64,21 @@ class _Belief:
         return dim - (cls._event_dims[name] - 1) if dim < 0 else dim
 
     @classmethod
+    def _join(cls: type[B], op: Callable[..., Tensor], beliefs: Sequence[B], dim: int, what: str) -> B:
+        if len(beliefs) == 0:
+            raise ValueError(f"beliefs: need at least one belief to {what}")
+        names = [f.name for f in fields(cls)]  # type: ignore[arg-type]
+        return cls(*(op([getattr(b, n) for b in beliefs], dim=cls._axis(n, dim)) for n in names))
+
+    @classmethod
     def stack(cls: type[B], beliefs: Sequence[B], dim: int = -2) -> B:
         """Stack beliefs along a new batch axis (see the module docstring for ``dim``)."""
-        if len(beliefs) == 0:
-            raise ValueError("beliefs: need at least one belief to stack")
-        names = [f.name for f in fields(cls)]  # type: ignore[arg-type]
-        return cls(*(torch.stack([getattr(b, n) for b in beliefs], dim=cls._axis(n, dim)) for n in names))
+        return cls._join(torch.stack, beliefs, dim, "stack")
 
     @classmethod
     def cat(cls: type[B], beliefs: Sequence[B], dim: int = -2) -> B:
         """Concatenate beliefs along an existing batch axis (see the module docstring for ``dim``)."""
-        if len(beliefs) == 0:
-            raise ValueError("beliefs: need at least one belief to concatenate")
-        names = [f.name for f in fields(cls)]  # type: ignore[arg-type]
-        return cls(*(torch.cat([getattr(b, n) for b in beliefs], dim=cls._axis(n, dim)) for n in names))
+        return cls._join(torch.cat, beliefs, dim, "concatenate")
 
     def at(self: B, index: int) -> B:
         """One step of a belief stacked over time (``mean: (..., T, n)``) -> ``mean: (..., n)``."""
