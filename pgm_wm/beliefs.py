@@ -162,6 +162,15 @@ class Gaussian(_Belief):
         """The dense form of a dense Gaussian is itself."""
         return self
 
+    @classmethod
+    def _join(cls, op: Callable[..., Tensor], beliefs: Sequence["Gaussian"], dim: int, what: str) -> "Gaussian":
+        """Stack / concatenate after broadcasting every belief to the common batch shape (a
+        covariance shared by a batch of means is expanded first)."""
+        if len(beliefs) == 0:
+            raise ValueError(f"beliefs: need at least one belief to {what}")
+        batch = torch.broadcast_shapes(*(b.batch_shape for b in beliefs))
+        return super()._join(op, [b.expand(*batch) for b in beliefs], dim, what)
+
     def expand(self, *batch_shape: int) -> "Gaussian":
         """Broadcast ``mean`` and ``cov`` to the leading shape ``batch_shape``."""
         n = self.dim
