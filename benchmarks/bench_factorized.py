@@ -30,6 +30,7 @@ from typing import Callable
 
 import torch
 
+from pgm_wm.beliefs import DiagGaussian
 from pgm_wm.factorized import FactorizedBelief, factorized_update
 from pgm_wm.kalman import kf_update
 
@@ -96,15 +97,15 @@ def main() -> dict:
                 mean = dense.mean + (K @ (w - dense.mean[..., :m]).unsqueeze(-1)).squeeze(-1)
                 return mean, (eye - K @ H) @ dense.cov
 
-            rows["factorized"].append(timeit(lambda: factorized_update(belief, w, w_var, validate=False)))
+            rows["factorized"].append(timeit(lambda: factorized_update(belief, DiagGaussian(w, w_var), validate=False)))
             rows["dense (kf_update)"].append(timeit(lambda: kf_update(dense, w, H, R)))
             rows["dense (inverse)"].append(timeit(textbook))
             big, bw, bv = random_problem(args.big_batch, L, dtype, seed=1)
             rows[f"factorized, batch {args.big_batch}"].append(
-                timeit(lambda: factorized_update(big, bw, bv, validate=False)))
+                timeit(lambda: factorized_update(big, DiagGaussian(bw, bv), validate=False)))
 
             # sanity check: all three agree
-            post = factorized_update(belief, w, w_var)
+            post = factorized_update(belief, DiagGaussian(w, w_var))
             ref, _ = kf_update(dense, w, H, R)
             tol = 1e-3 if dtype == torch.float32 else 1e-9
             assert torch.allclose(post.to_dense().cov, ref.cov, atol=tol, rtol=tol)

@@ -315,8 +315,8 @@ def masked_max_pool(h: Tensor, mask: Tensor | None = None) -> Tensor:
 
 
 def zero_padding(x: Tensor, mask: Tensor | None) -> Tensor:
-    """Set elements ``x: (..., N, F)`` with ``mask: (..., N)`` False to zero *before* a network sees
-    them, so that whatever padding holds (NaN included) can reach neither the outputs nor the
+    """Set entries ``x: (..., F)`` (set elements, time steps) whose ``mask: (...)`` is False to zero
+    *before* a network sees them, so that whatever padding holds (NaN included) can reach neither the outputs nor the
     parameter gradients (a masked NaN still gives ``0 * NaN = NaN`` in a backward pass)."""
     if mask is None:
         return x

@@ -64,20 +64,21 @@ class _Belief:
         return dim - (cls._event_dims[name] - 1) if dim < 0 else dim
 
     @classmethod
+    def _join(cls: type[B], op: Callable[..., Tensor], beliefs: Sequence[B], dim: int, what: str) -> B:
+        if len(beliefs) == 0:
+            raise ValueError(f"beliefs: need at least one belief to {what}")
+        names = [f.name for f in fields(cls)]  # type: ignore[arg-type]
+        return cls(*(op([getattr(b, n) for b in beliefs], dim=cls._axis(n, dim)) for n in names))
+
+    @classmethod
     def stack(cls: type[B], beliefs: Sequence[B], dim: int = -2) -> B:
         """Stack beliefs along a new batch axis (see the module docstring for ``dim``)."""
-        if len(beliefs) == 0:
-            raise ValueError("beliefs: need at least one belief to stack")
-        names = [f.name for f in fields(cls)]  # type: ignore[arg-type]
-        return cls(*(torch.stack([getattr(b, n) for b in beliefs], dim=cls._axis(n, dim)) for n in names))
+        return cls._join(torch.stack, beliefs, dim, "stack")
 
     @classmethod
     def cat(cls: type[B], beliefs: Sequence[B], dim: int = -2) -> B:
         """Concatenate beliefs along an existing batch axis (see the module docstring for ``dim``)."""
-        if len(beliefs) == 0:
-            raise ValueError("beliefs: need at least one belief to concatenate")
-        names = [f.name for f in fields(cls)]  # type: ignore[arg-type]
-        return cls(*(torch.cat([getattr(b, n) for b in beliefs], dim=cls._axis(n, dim)) for n in names))
+        return cls._join(torch.cat, beliefs, dim, "concatenate")
 
     def at(self: B, index: int) -> B:
         """One step of a belief stacked over time (``mean: (..., T, n)``) -> ``mean: (..., n)``."""
@@ -160,6 +161,15 @@ class Gaussian(_Belief):
     def to_dense(self) -> "Gaussian":
         """The dense form of a dense Gaussian is itself."""
         return self
+
+    @classmethod
+    def _join(cls, op: Callable[..., Tensor], beliefs: Sequence["Gaussian"], dim: int, what: str) -> "Gaussian":
+        """Stack / concatenate after broadcasting every belief to the common batch shape (a
+        covariance shared by a batch of means is expanded first)."""
+        if len(beliefs) == 0:
+            raise ValueError(f"beliefs: need at least one belief to {what}")
+        batch = torch.broadcast_shapes(*(b.batch_shape for b in beliefs))
+        return super()._join(op, [b.expand(*batch) for b in beliefs], dim, what)
 
     def expand(self, *batch_shape: int) -> "Gaussian":
         """Broadcast ``mean`` and ``cov`` to the leading shape ``batch_shape``."""

@@ -1,10 +1,11 @@
-r"""Multi-time-scale state-space models (Chapter 6): MTS3 with two and with N levels.
+r"""Multi-time-scale state-space models (Chapter 6): one :class:`MTS3` class with N levels.
 
 An MTS3 stacks state-space models that run at different rates. The **fast** level is the
 ac-RKN of Chapter 4 (:class:`pgm_wm.acrkn.AcRKN`): one predict/update per time step. A **slow**
 level (:class:`TaskSSM`) keeps a factorized belief over a latent *task* :math:`l_k` and moves only
 once per window of ``window`` = :math:`H` steps. Its belief enters the fast predict step as one
-more independent Gaussian cause (Eq. mts3-fast-predict),
+more independent Gaussian cause (Eq. mts3-fast-predict): the fast level is the ac-RKN with the
+causes ``[control, C l_k]`` (:meth:`MTS3.causes`),
 
 .. math:: z^-_{t+1} = A z^+_t + b(a_t) + C\mu^-_{l_k},\qquad
           \Sigma^-_{t+1} = A\Sigma^+_tA^\top + Q + C\Sigma^-_{l_k}C^\top ,
@@ -30,7 +31,7 @@ The slow level per window :math:`k` (all three are Gaussian identities of Chapte
 * **task update** (Eq. mts3-task-update): the window's observations, each with a time encoding,
   are encoded to abstract observations :math:`(\beta_{k,t}, \nu_{k,t})` with the observation model
   :math:`\beta_{k,t}\mid l_k \sim \mathcal N([I, 0]\,l_k, \operatorname{diag}\nu_{k,t})` and conditioned
-  on as a set in precision form (:func:`pgm_wm.aggregation.set_condition`).
+  on as a set in precision form (:func:`pgm_wm.aggregation.set_update`).
 
 Fast-scale bookkeeping: the prior of the first step of window :math:`k` is the prior after the
 last step of window :math:`k-1` (the fast belief runs on across windows), but with
@@ -46,22 +47,19 @@ the fast predict treats the task and the fast state as *independent* causes at e
 if the task were drawn afresh from its prior at each step; inside a window the true posterior
 would correlate :math:`z` and :math:`l`. The slow level, not the fast one, learns about the task.
 
-**N levels** (:class:`HierarchicalMTS3`): a list of task levels with windows
-:math:`H_1 < H_2 < \dots` (each dividing the next). Level :math:`i` predicts once per window of
-:math:`H_i` steps, conditioned on the current *prior* of level :math:`i+1` through its own matrix
-:math:`C_i` (one more cause in Eq. mts3-task-predict), and is updated with the abstract
-observations of its window. With no task level it is the ac-RKN; with one it is :class:`MTS3`.
-
-Training uses imputation at both scales: :func:`window_imputation_mask` hides single steps and
-whole windows. :func:`evaluate_open_loop` gives long-horizon predictions after a context and
-their sliding-window metrics (:mod:`pgm_wm.metrics`).
+**N levels**: a list of task levels with windows :math:`H_1 < H_2 < \dots` (each dividing the
+next). Level :math:`i` predicts once per window of :math:`H_i` steps, conditioned on the current
+*prior* of level :math:`i+1` through its own matrix :math:`C_i` (one more cause in
+Eq. mts3-task-predict), and is updated with the abstract observations of its window. With no
+task level the model is the ac-RKN; with one it is the two-level MTS3 of the thesis.
 
 Implementation notes. The slow levels never look at the fast beliefs, so :class:`MTS3` first
 runs the slow level over all windows, then the fast level (:func:`run_fast_level`). Because the
 fast gradients are cut at window boundaries anyway, the fast level can be run as one pass
 without gradients (to get each window's initial belief) followed by *all windows in parallel*
 as a batch — same values and gradients, a graph only :math:`H` steps deep. With diagonal blocks
-the fast loop is :func:`diagonal_filter`, the factorized update/predict written elementwise.
+the fast loop runs on :func:`pgm_wm.factorized.diagonal_factorized_filter`, the elementwise fast
+path of the reference filter loop (tested equal to it in float32 and float64).
 """
 
 from __future__ import annotations

@@ -10,7 +10,8 @@ An RKN is ``encoder -> [update, predict]* -> decoder``:
   made of band-limited blocks (Eq. rkn-transition) and learned transition noise, via
   :func:`pgm_wm.factorized.factorized_predict_from_matrix` (Eq. rkn-predict; this step keeps only
   the block diagonals of :math:`A\Sigma A^\top`, the RKN's one approximation); later chapters add
-  more independent causes to this predict step (an action term, a latent task);
+  more independent causes to this predict step (an action term, a latent task): a model is the
+  previous one plus one more entry in the list of causes :meth:`RKN.filter` takes;
 * the **decoder** maps the belief to a Gaussian over the target (Eq. rkn-decoder).
 
 ``RKN(..., diagonal_only=True)`` is the diagonal-covariance ablation of Chapter 3 (side
@@ -31,6 +32,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ._checks import check_finite, check_last_dims, check_mask, check_tensor
+from .aggregation import zero_padding
 from .beliefs import DiagGaussian, FactorizedBelief
 from .factorized import (
     _observation,
@@ -507,6 +509,4 @@ class RKN(nn.Module):
 def zero_missing(x: Tensor, mask: Tensor | None, name: str = "obs") -> Tensor:
     """``x: (B, T, d)`` with the steps where ``mask: (B, T)`` is False set to zero (so NaN or stale
     values there never reach a network or a gradient); the remaining entries must be finite."""
-    if mask is not None:
-        x = torch.where(mask[..., None], x, torch.zeros((), dtype=x.dtype, device=x.device))
-    return check_finite(name, x)
+    return check_finite(name, zero_padding(x, mask))

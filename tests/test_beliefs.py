@@ -98,3 +98,11 @@ def test_gaussian_importable_from_the_old_paths():
     from pgm_wm.gaussian import Gaussian as G2
 
     assert G2 is Gaussian and F2 is FactorizedBelief
+
+
+def test_gaussian_stack_broadcasts_a_shared_covariance():
+    shared = Gaussian(torch.zeros(3, 2, dtype=D), torch.eye(2, dtype=D))
+    other = Gaussian(torch.ones(3, 2, dtype=D), 2.0 * torch.eye(2, dtype=D).expand(3, 2, 2))
+    st = Gaussian.stack([shared, other])
+    assert st.mean.shape == (3, 2, 2) and st.cov.shape == (3, 2, 2, 2)
+    same(st.at(0), Gaussian(torch.zeros(3, 2, dtype=D), torch.eye(2, dtype=D).expand(3, 2, 2)))

@@ -538,6 +538,32 @@ def test_bad_inputs_raise_value_error():
         hip(o, a, m, ctx, cm[:, :2])
     with pytest.raises(ValueError, match="task"):
         hip(o, a, m, task=(torch.zeros(4, 4, dtype=DT), -torch.ones(4, 4, dtype=DT)))
+    # issue 13.7: a NaN task variance (NaN < 0 is False) and a NaN in a *present* context element
+    with pytest.raises(ValueError, match="^task: mean and variances must be finite"):
+        hip(o, a, m, task=(torch.zeros(4, 4, dtype=DT), torch.full((4, 4), float("nan"), dtype=DT)))
+    bad_ctx = ctx.clone()
+    bad_ctx[cm] = float("nan")
+    with pytest.raises(ValueError, match="^context: contains NaN"):
+        hip(o, a, m, bad_ctx, cm)
+    with pytest.raises(ValueError, match="^obs: need at least one time step"):
+        hip(o[:, :0], a[:, :0], m[:, :0], ctx, cm)
+
+
+@pytest.mark.parametrize("encoder", ["ba", "rnn"])
+def test_nan_context_padding_gives_finite_gradients_after_an_adam_step(encoder):
+    """Issue 13.3: padded context elements are zeroed before the set encoder sees them."""
+    hip = make_hip(encoder=encoder)
+    o, a, m, ctx, cm = window_batch()
+    cm[:, 0] = True
+    ctx[~cm] = float("nan")
+    opt = torch.optim.Adam(hip.parameters(), lr=1e-2)
+    for _ in range(2):
+        opt.zero_grad()
+        mean, var = hip(o, a, m, ctx, cm)
+        (mean.square().mean() + var.mean()).backward()
+        assert all(torch.isfinite(p.grad).all() for p in hip.parameters() if p.grad is not None)
+        opt.step()
+    assert all(torch.isfinite(p).all() for p in hip.parameters())
     with pytest.raises(ValueError, match="keep_prob"):
         eval_masks(3, 5, 1.5)
     with pytest.raises(ValueError, match="n_components"):
