@@ -86,10 +86,10 @@ def build_recurrent_filter(cell: str, image_shape: Sequence[int], out_dim: int =
     """An LSTM / GRU filter (``cell`` = ``"lstm"`` / ``"gru"``) with the same encoder as
     :func:`build_rkn` and a recurrent layer no larger than the RKN's transition model."""
     _choice("cell", cell, ("lstm", "gru"))
+    encoder = build_image_encoder(image_shape, latent_obs_dim)  # first: the same initial encoder as build_rkn
     budget = count_parameters(LocallyLinearTransition(latent_obs_dim, num_basis, bandwidth))
     hidden = recurrent_hidden_for_budget(cell, 2 * latent_obs_dim + 1, budget)
-    return RecurrentFilter(build_image_encoder(image_shape, latent_obs_dim), cell, hidden,
-                           GaussianHead(hidden, out_dim, decoder_hidden, decoder_hidden))
+    return RecurrentFilter(encoder, cell, hidden, GaussianHead(hidden, out_dim, decoder_hidden, decoder_hidden))
 
 
 # ----------------------------------------------------------------------------- Chapter 4
