@@ -43,7 +43,6 @@ from __future__ import annotations
 from typing import Sequence
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ._checks import as_tensor, check_last_dims, check_mask, check_positive, check_tensor

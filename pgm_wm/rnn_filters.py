@@ -17,7 +17,6 @@ diagonal-only ablation, these baselines) on the per-dimension Gaussian NLL
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
 
 import torch
 from torch import Tensor, nn

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import torch
 
-from pgm_wm.acrkn import DifferenceReadout
 from pgm_wm.baselines import (
     FFNNBaseline,
     GRUBaseline,
@@ -69,25 +68,6 @@ def test_batch_equals_sequential(name):
     mean, _ = model(obs, act, mask)
     for b in range(3):
         torch.testing.assert_close(model(obs[b:b + 1], act[b:b + 1], mask[b:b + 1])[0][0], mean[b])
-
-
-def test_feedback_equals_explicit_memory_rule():
-    """At a masked step the input is the model's own previous prediction: feeding that value
-    as if it were observed (flag aside) must reproduce the model's prediction."""
-    model = build("gru")
-    obs, act, _ = data(B=2, T=8)
-    mask = torch.ones(2, 8, dtype=torch.bool)
-    mask[:, 4:] = False
-    mean, _ = model(obs, act, mask)
-    # reproduce step by step with DifferenceReadout semantics
-    h = model.init_state(2, obs)
-    last = None
-    for t in range(8):
-        mem = DifferenceReadout.memory(obs[:, t], mask[:, t], last)
-        x = torch.cat([mem, act[:, t], mask[:, t, None].double()], -1)
-        h, dm, dv = model.step(h, x)
-        last = mem + model.readout.shift + model.readout.scale * dm
-        torch.testing.assert_close(last, mean[:, t])
 
 
 def test_ffnn_depends_only_on_its_window():
