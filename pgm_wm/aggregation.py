@@ -43,13 +43,12 @@ from __future__ import annotations
 from typing import Sequence
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ._checks import as_tensor, check_finite, check_last_dims, check_mask, check_positive, check_tensor
 from .beliefs import DiagGaussian, FactorizedBelief
 from .factorized import block_inverse
-from .layers import mlp
+from .layers import mlp, positive_variance
 
 __all__ = [
     "set_update",
@@ -324,18 +323,6 @@ def zero_padding(x: Tensor, mask: Tensor | None) -> Tensor:
 
 
 # ----------------------------------------------------------------------------- learned modules
-def positive_variance(raw: Tensor, min_var: float) -> Tensor:
-    r"""Map an unconstrained network output to a variance: :math:`\mathrm{softplus}(x) + v_{min}`.
-
-    Why this activation: softplus is smooth and strictly positive and grows only linearly for
-    large inputs (``exp`` would overflow and make the precision :math:`1/\sigma` vanish
-    exponentially fast, which kills gradients); the floor ``min_var`` bounds every element's
-    precision by :math:`1/v_{min}`, so no single element can take all the weight or produce a
-    division by zero in Eq. (ba-update).
-    """
-    return F.softplus(raw) + min_var
-
-
 class SetEncoder(nn.Module):
     r"""Per-element encoder :math:`x_n \mapsto (r_n, \sigma_n)`: a shared MLP trunk with two linear
     heads, ``enc_r`` (the latent observation) and ``enc_var`` (its variance,

@@ -42,7 +42,7 @@ from .factorized import (
     factorized_predict_from_matrix,
 )
 from .filtering import FilterResult, filter_loop
-from .layers import mlp
+from .layers import elup1, mlp
 
 __all__ = [
     "elup1",
@@ -75,16 +75,6 @@ Cause = Union[FactorizedBelief, StateCause]
 def over_time(cause: FactorizedBelief, T: int) -> FactorizedBelief:
     """A cause constant over a window (batch ``(B,)``, e.g. a task) as a sequence ``(B, T, ·)``."""
     return cause.map(lambda x: x.unsqueeze(-2).expand(*x.shape[:-1], T, x.shape[-1]))
-
-
-def elup1(x: Tensor) -> Tensor:
-    """``elu(x) + 1``: a smooth map onto :math:`(0, \\infty)` used for all learned variances.
-
-    It equals ``x + 1`` for ``x > 0`` and ``exp(x)`` for ``x <= 0``. We evaluate the second branch
-    as ``exp(x)`` directly: written as ``elu(x) + 1 = (exp(x) - 1) + 1`` it cancels to exactly 0 in
-    float32 once ``x < -16.6``, and a zero variance breaks the likelihood.
-    """
-    return torch.where(x > 0, x + 1.0, torch.exp(x.clamp(max=0.0)))
 
 
 def band_mask(m: int, bandwidth: int) -> Tensor:
