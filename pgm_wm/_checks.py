@@ -155,3 +155,25 @@ def check_same_batch(names: Sequence[str], tensors: Sequence[Tensor], n_event_di
     except RuntimeError as err:
         desc = ", ".join(f"{n}: {tuple(t.shape)}" for n, t in zip(names, tensors))
         raise ValueError(f"{names[0]}: batch dimensions do not broadcast ({desc})") from err
+
+
+_SUPPORTED_FLOAT_DTYPES = (torch.float32, torch.float64)
+
+
+def check_same_dtype(names: Sequence[str], tensors: Sequence[Tensor | None]) -> torch.dtype:
+    """One dtype rule for the dense Gaussian functions: every given tensor (``None`` is skipped)
+    has the dtype of the first, which must be float32 or float64 (half precision cannot hold the
+    covariance recursions). Raises ``ValueError`` naming the first offending argument."""
+    dtype: torch.dtype | None = None
+    first = ""
+    for name, x in zip(names, tensors):
+        if x is None:
+            continue
+        if x.dtype not in _SUPPORTED_FLOAT_DTYPES:
+            raise ValueError(f"{name}: dtype {x.dtype} is not supported; use torch.float32 or torch.float64")
+        if dtype is None:
+            dtype, first = x.dtype, name
+        elif x.dtype != dtype:
+            raise ValueError(f"{name}: dtype {x.dtype} differs from {first}'s dtype {dtype}; "
+                             "convert all inputs to one dtype")
+    return dtype if dtype is not None else torch.get_default_dtype()
