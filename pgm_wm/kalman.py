@@ -236,9 +236,10 @@ def _diagnose(result: FilterResult, F: Tensor, mask: Tensor | None) -> None:
     """After a run from valid inputs: raise a ``ValueError`` naming the real cause if a
     covariance overflowed (an explosive ``F`` over steps without observations) or an innovation
     covariance lost positive definiteness (a dtype too short for the model's variance ratio)."""
-    cov = result.next_prior.cov.detach()
-    finite_t = torch.isfinite(cov).flatten(-2).all(-1)          # (..., T)
-    if not bool(finite_t.all()):
+    cov = _compact(result.next_prior.cov.detach(), 3)
+    # a covariance that overflowed stays non-finite, so the last step tells (cheap)
+    if not bool(torch.isfinite(cov[..., -1, :, :]).all()):
+        finite_t = torch.isfinite(cov).flatten(-2).all(-1)      # (..., T)
         bad = (~finite_t).reshape(-1, finite_t.shape[-1]).any(0)
         t = int(bad.nonzero()[0])
         rho = float(torch.linalg.eigvals(F.detach().to(torch.float64)).abs().max())
@@ -249,7 +250,7 @@ def _diagnose(result: FilterResult, F: Tensor, mask: Tensor | None) -> None:
             f"(spectral radius {rho:.4g}) and {cov.dtype} cannot hold the growing variance; use a stable "
             "F, float64, or shorter runs without observations")
     ll = result.log_likelihoods
-    if ll is not None and not bool(torch.isfinite(ll.detach()).all()):
+    if ll is not None and not bool(torch.isfinite(ll.detach().sum())):
         raise ValueError(
             f"R: an innovation covariance H Σ Hᵀ + R lost positive definiteness in {ll.dtype}: the ratio of "
             "the prior variance to the observation variance R exceeds what this dtype represents; use "
@@ -435,57 +436,71 @@ def _filter_fast(
         cov_post = Pp_all.unsqueeze(1)
         cov_next = P_all[1:].unsqueeze(1)
     else:
-        # A covariance per sequence, batch flattened to N rows, outputs preallocated.
-        Fb, Hb, Qb, Rb = (x if x.ndim == 2 else flat(x, 2) for x in (F, H, Q, R))
-        op_F = _sandwich_operator(F) if F.ndim == 2 else None
-        Qv = Qb.reshape(*Qb.shape[:-2], n * n)
-        P = flat(init.cov, 2)
-        mean = flat(init.mean, 1)
+        # A covariance per sequence (a mask per sequence or batched parameters), outputs
+        # written into preallocated tensors (lists when a gradient is needed).
         if needs_grad:
             lists: dict[str, list[Tensor]] = {k: [] for k in ("P", "Pp", "M", "Mp", "Sinv", "ld", "e")}
+            bufs: dict[str, Tensor] = {}
         else:
-            bufs = dict(
-                P=torch.empty(T + 1, N, n, n, dtype=dt, device=dev),
-                Pp=torch.empty(T, N, n, n, dtype=dt, device=dev),
-                M=torch.empty(T + 1, N, n, dtype=dt, device=dev),
-                Mp=torch.empty(T, N, n, dtype=dt, device=dev),
-                Sinv=torch.empty(T, N, m, m, dtype=dt, device=dev),
-                ld=torch.empty(T, N, dtype=dt, device=dev),
-                e=torch.empty(T, N, m, dtype=dt, device=dev),
-            )
+            # "structure of arrays": the batch is the last, contiguous axis of every slot
+            sizes = dict(P=(T + 1, n, n, N), Pp=(T, n, n, N), M=(T + 1, n, N), Mp=(T, n, N),
+                         Sinv=(T, m, m, N), ld=(T, N), e=(T, m, N))
+            bufs = {k: torch.empty(v, dtype=dt, device=dev) for k, v in sizes.items()}
 
-        def put(name: str, t: int, x: Tensor) -> None:
+        def out(name: str, t: int) -> Tensor | None:
+            """The slot of step t of an output (None: let the op allocate, for autograd)."""
+            return None if needs_grad else bufs[name][t]
+
+        def put(name: str, t: int, x: Tensor, soa: bool = True) -> None:
+            """Store x (batch last if soa, else batch first) as slot t of an output."""
+            if not soa:
+                x = x.movedim(0, -1)
             if needs_grad:
                 lists[name].append(x)
-            else:
+            elif x.data_ptr() != bufs[name][t].data_ptr():
                 bufs[name][t].copy_(x)
 
-        put("P", 0, P)
-        put("M", 0, mean)
-        Ht = Hb.transpose(-1, -2)
+        step = _SequenceStep(F, H, Q, R, n, m, N) if params_2d else None
+        P, mean = flat(init.cov, 2), flat(init.mean, 1)
+        if step is not None:
+            P, mean = P.permute(1, 2, 0).contiguous(), mean.T.contiguous()
+            y_soa = y_tm.permute(0, 2, 1).contiguous()                             # (T, m, N)
+            u_soa = None if off_tm is None else off_tm.permute(0, 2, 1).contiguous()
+        put("P", 0, P, soa=step is not None)
+        put("M", 0, mean, soa=step is not None)
         for t in range(T):
-            Pp, K, S_inv, logdet = _joseph_step(P, Hb, Rb, None if w_all is None else w_all[:, t], eye)
-            e = y_tm[t] - (mean.unsqueeze(-2) @ Ht).squeeze(-2)                  # innovation
-            mean_p = mean + (K @ e.unsqueeze(-1)).squeeze(-1)
-            if op_F is not None:
-                P = torch.addmm(Qv, Pp.reshape(N, n * n), op_F).reshape(N, n, n)
-                mean = mean_p @ Fb.T if off_tm is None else torch.addmm(off_tm[t], mean_p, Fb.T)
-            else:
-                P = _sym(Fb @ Pp @ Fb.transpose(-1, -2)) + Qb
+            w = None if w_all is None else w_all[:, t]
+            if step is not None:
+                P, mean = step(P, mean, y_soa[t], w, None if u_soa is None else u_soa[t], t, out)
+                for name in ("Pp", "Mp", "Sinv", "ld", "e"):
+                    put(name, t, getattr(step, name))
+                put("P", t + 1, P)
+                put("M", t + 1, mean)
+            else:   # batched parameters: plain batched matrix products
+                prior = Gaussian(mean, P)
+                Pp, K, S_inv, logdet = _joseph_step(P, flat(H, 2) if H.ndim > 2 else H,
+                                                    flat(R, 2) if R.ndim > 2 else R, w, eye)
+                Fb = flat(F, 2) if F.ndim > 2 else F
+                e = y_tm[t] - (prior.mean.unsqueeze(-2) @ (flat(H, 2) if H.ndim > 2 else H).transpose(-1, -2)).squeeze(-2)
+                mean_p = mean + (K @ e.unsqueeze(-1)).squeeze(-1)
+                P = _sym(Fb @ Pp @ Fb.transpose(-1, -2)) + (flat(Q, 2) if Q.ndim > 2 else Q)
                 mean = (Fb @ mean_p.unsqueeze(-1)).squeeze(-1)
                 if off_tm is not None:
                     mean = mean + off_tm[t]
-            for name, x in (("Pp", Pp), ("Mp", mean_p), ("Sinv", S_inv), ("ld", logdet.expand(N)),
-                            ("e", e), ("P", P), ("M", mean)):
-                put(name, t + (name in ("P", "M")), x)
+                for name, x in (("Pp", Pp), ("Mp", mean_p), ("Sinv", S_inv), ("ld", logdet.expand(N)),
+                                ("e", e)):
+                    put(name, t, x, soa=False)
+                put("P", t + 1, P, soa=False)
+                put("M", t + 1, mean, soa=False)
         if needs_grad:
             bufs = {k: torch.stack([x.expand_as(v[-1]) for x in v]) for k, v in lists.items()}
-        M, M_post, innov = bufs["M"], bufs["Mp"], bufs["e"]
-        S_inv_tm, logdet_tm = bufs["Sinv"], bufs["ld"]
-        cov_prior, cov_post, cov_next = bufs["P"][:T], bufs["Pp"], bufs["P"][1:]
+        aos = {k: v.movedim(-1, 1) for k, v in bufs.items()}          # batch back to axis 1 (views)
+        M, M_post, innov = aos["M"], aos["Mp"], aos["e"]
+        S_inv_tm, logdet_tm = aos["Sinv"], bufs["ld"]
+        cov_prior, cov_post, cov_next = aos["P"][:T], aos["Pp"], aos["P"][1:]
 
     # Eq. (kf-loglik) for all steps at once: log N(e_t | 0, S_t).
-    quad = ((innov.unsqueeze(-1) * S_inv_tm).sum(-2) * innov).sum(-1)          # (T, N)
+    quad = (innov.unsqueeze(-1) * innov.unsqueeze(-2) * S_inv_tm).flatten(-2).sum(-1)   # (T, N)
     ll = -0.5 * (quad + logdet_tm + m * _LOG_2PI)
     if w_all is not None:
         ll = torch.where(w_all.T > 0, ll, torch.zeros((), dtype=dt))
@@ -498,6 +513,78 @@ def _filter_fast(
         return Gaussian(mean, cov)
 
     return FilterResult(belief(M[:T], cov_prior), belief(M_post, cov_post), belief(M[1:], cov_next), ll)
+
+
+class _SequenceStep:
+    """One step of the per-sequence fast path for unbatched ``F, H, Q, R`` on ``N``
+    covariances stored "structure of arrays" (``Σ: (n, n, N)``, ``μ: (n, N)``): every map that
+    is linear in :math:`\Sigma` or :math:`K` is one GEMM with a constant matrix, products of two
+    per-sequence matrices are broadcast multiply-and-sum over the contiguous batch axis, the
+    innovation matrices are inverted by closed formulas (``m ≤ 2``), and results go straight
+    into their output slots (``out``). Eqs. (kf-update), (kf-joseph), (kf-predict)."""
+
+    def __init__(self, F: Tensor, H: Tensor, Q: Tensor, R: Tensor, n: int, m: int, N: int) -> None:
+        dt, dev = F.dtype, F.device
+        eye_n = torch.eye(n, dtype=dt, device=dev)
+        # vec(Σ) -> [vec(Σ Hᵀ), vec(H Σ Hᵀ) + vec(R)], vec(K) -> vec(K H), vec(K R)
+        to_PHt = torch.einsum("ab,kj->akbj", eye_n, H).reshape(n * m, n * n)        # [i k, i j] = H_kj
+        to_S = torch.einsum("ki,lj->klij", H, H).reshape(m * m, n * n)
+        self.lin = torch.cat([to_PHt, to_S], 0).contiguous()
+        self.lin_bias = torch.cat([torch.zeros(n * m, dtype=dt, device=dev), R.reshape(m * m)])[:, None]
+        self.to_KH = torch.einsum("ab,kj->ajbk", eye_n, H).reshape(n * n, n * m)     # [i j, i k] = H_kj
+        self.to_KR = torch.einsum("ab,kj->ajbk", eye_n, R).reshape(n * m, n * m)     # [i j, i k] = R_kj
+        self.to_FPF = torch.einsum("ki,lj->klij", F, F).reshape(n * n, n * n)
+        self.eye_vec = eye_n.reshape(n * n, 1)
+        self.Qv = Q.reshape(n * n, 1)
+        self.H, self.F = H, F
+        self.n, self.m, self.N = n, m, N
+
+    def __call__(self, P: Tensor, mean: Tensor, y_t: Tensor, w: Tensor | None, u_t: Tensor | None, t: int, out):
+        n, m, N = self.n, self.m, self.N
+        lin = torch.addmm(self.lin_bias, self.lin, P.view(n * n, N))                # (n m + m², N)
+        PHt = lin[: n * m].view(n, m, N)
+        S = lin[n * m:].view(m, m, N)
+        S_inv, logdet = _spd_inverse_soa(S, w)                                       # weight 0: K = 0
+        K = _mm(PHt, S_inv)                                                           # (n, m, N)
+        A = torch.addmm(self.eye_vec, self.to_KH, K.view(n * m, N), alpha=-1).view(n, n, N)   # I − K H
+        KR = (self.to_KR @ K.view(n * m, N)).view(n, m, N)
+        # Joseph form (kf-joseph): Σ⁺ = A Σ Aᵀ + K R Kᵀ
+        Pp = torch.add(_mm_t(_mm(A, P), A), _mm_t(KR, K), out=out("Pp", t))
+        e = torch.addmm(y_t, self.H, mean, alpha=-1, out=out("e", t))                # y − H μ⁻
+        Mp = torch.add(mean, (K * e.unsqueeze(0)).sum(1), out=out("Mp", t))
+        slot = out("P", t + 1)
+        P_next = torch.addmm(self.Qv, self.to_FPF, Pp.view(n * n, N),
+                             out=None if slot is None else slot.view(n * n, N)).view(n, n, N)
+        mean_next = torch.addmm(u_t, self.F, Mp, out=out("M", t + 1)) if u_t is not None \
+            else torch.mm(self.F, Mp, out=out("M", t + 1))
+        self.Pp, self.Mp, self.Sinv, self.ld, self.e = Pp, Mp, S_inv, logdet, e
+        return P_next, mean_next
+
+
+def _mm(A: Tensor, B: Tensor) -> Tensor:
+    """``A @ B`` for batch-last matrices ``A: (i, k, N)``, ``B: (k, j, N)`` -> ``(i, j, N)``."""
+    return (A.unsqueeze(2) * B.unsqueeze(0)).sum(1)
+
+
+def _mm_t(A: Tensor, B: Tensor) -> Tensor:
+    """``A @ Bᵀ`` for batch-last matrices ``A: (i, k, N)``, ``B: (j, k, N)`` -> ``(i, j, N)``."""
+    return (A.unsqueeze(1) * B.unsqueeze(0)).sum(2)
+
+
+def _spd_inverse_soa(S: Tensor, w: Tensor | None) -> tuple[Tensor, Tensor]:
+    """``(w · S⁻¹, log det S)`` for batch-last SPD matrices ``S: (m, m, N)``; closed formulas for
+    ``m ≤ 2``, Cholesky otherwise (see :func:`_spd_inverse`)."""
+    m = S.shape[0]
+    if m == 2:
+        a, b, d = S[0, 0], S[0, 1], S[1, 1]
+        det = torch.addcmul(a * d, b, b, value=-1)
+        scale = det.reciprocal() if w is None else w / det
+        nb = -b
+        inv = torch.stack([d, nb, nb, a]).view(2, 2, -1) * scale
+        return inv, torch.log(det)
+    inv, logdet = _spd_inverse(S.movedim(-1, 0))
+    inv = inv.movedim(0, -1)
+    return (inv if w is None else inv * w), logdet
 
 
 # ---------------------------------------------------------------------------------------------
@@ -573,12 +660,17 @@ def rts_smoother(result: FilterResult, F: Tensor, Q: Tensor) -> Gaussian:
     ``(..., T, n)`` and cov ``(..., T, n, n)``.
     """
     post, nxt = _check_smoother_inputs(result, F, Q)
+    T, n = post.mean.shape[-2], post.dim
+    batch = post.batch_shape[:-1]
     # Covariances shared by the batch (broadcast views from kalman_filter) are processed once.
     shared = Gaussian(post.mean, _compact(post.cov, 3)), Gaussian(nxt.mean, _compact(nxt.cov, 3))
+    needs_grad = torch.is_grad_enabled() and any(
+        x.requires_grad for x in (post.mean, post.cov, nxt.mean, nxt.cov, F, Q))
+    if shared[0].cov.shape[:-3] == batch and len(batch) > 0 and F.ndim == 2 and Q.ndim == 2 \
+            and not needs_grad and T > 1:
+        return _rts_per_sequence(post, nxt, F, Q)
     G, L = _smoother_gains(shared[0], shared[1], F, Q)
-    T = post.mean.shape[-2]
-    batch = post.batch_shape[:-1]
-    m_f, m_p = post.mean.expand(*batch, T, post.dim), nxt.mean.expand(*batch, T, post.dim)
+    m_f, m_p = post.mean.expand(*batch, T, n), nxt.mean.expand(*batch, T, n)
     Gt = G.transpose(-1, -2)
     m_s, c_s = m_f[..., T - 1, :], shared[0].cov[..., T - 1, :, :]
     means, covs = [m_s], [c_s]
@@ -591,7 +683,76 @@ def rts_smoother(result: FilterResult, F: Tensor, Q: Tensor) -> Gaussian:
     mean = torch.stack(means[::-1], -2)
     cov_shape = torch.broadcast_shapes(*(c.shape for c in covs))
     cov = torch.stack([c.expand(cov_shape) for c in covs[::-1]], -3)
-    return Gaussian(mean, cov.expand(*batch, T, post.dim, post.dim))
+    return Gaussian(mean, cov.expand(*batch, T, n, n))
+
+
+def _cholesky_soa(A: Tensor) -> Tensor:
+    """Lower Cholesky factors of batch-last SPD matrices ``A: (n, n, B)`` by the column
+    algorithm, elementwise over the contiguous batch axis (no LAPACK call per matrix)."""
+    n = A.shape[0]
+    L = torch.zeros_like(A)
+    for j in range(n):
+        d = (A[j, j] - L[j, :j].square().sum(0)).sqrt()
+        L[j, j] = d
+        if j + 1 < n:
+            L[j + 1:, j] = (A[j + 1:, j] - (L[j + 1:, :j] * L[j, :j].unsqueeze(0)).sum(1)) / d
+    return L
+
+
+def _cholesky_solve_soa(L: Tensor, Bm: Tensor) -> Tensor:
+    """``(L Lᵀ)⁻¹ B`` for batch-last ``L: (n, n, B)`` and ``B: (n, r, B)``, by forward and back
+    substitution elementwise over the batch axis."""
+    n = L.shape[0]
+    Z = torch.empty_like(Bm)
+    for i in range(n):
+        Z[i] = (Bm[i] - (L[i, :i].unsqueeze(1) * Z[:i]).sum(0)) / L[i, i]
+    X = torch.empty_like(Bm)
+    for i in range(n - 1, -1, -1):
+        X[i] = (Z[i] - (L[i + 1:, i].unsqueeze(1) * X[i + 1:]).sum(0)) / L[i, i]
+    return X
+
+
+def _rts_per_sequence(post: Gaussian, nxt: Gaussian, F: Tensor, Q: Tensor, chunk: int = 128) -> Gaussian:
+    """:func:`rts_smoother` for a covariance per sequence and unbatched ``F, Q``, without a
+    gradient: batch-last layout, gains and conditional covariances (Joseph form) for blocks of
+    ``chunk`` steps at once, then 9 elementwise operations per step backwards."""
+    T, n = post.mean.shape[-2], post.dim
+    batch = post.batch_shape[:-1]
+    N = math.prod(batch)
+
+    def soa(x: Tensor, k: int) -> Tensor:        # (*batch, T, *event) -> (T, *event, N)
+        x = x.expand(*batch, T, *x.shape[x.ndim - k:]).reshape(N, T, *x.shape[x.ndim - k:])
+        return x.movedim(0, -1).contiguous()
+
+    m_f, m_p, c_f, c_p = soa(post.mean, 1), soa(nxt.mean, 1), soa(post.cov, 2), soa(nxt.cov, 2)
+    eye = torch.eye(n, dtype=F.dtype, device=F.device)
+    to_GF = torch.einsum("ab,kj->ajbk", eye, F).reshape(n * n, n * n)     # vec(G) -> vec(G F)
+    G = torch.empty(T - 1, n, n, N, dtype=F.dtype, device=F.device)
+    Lc = torch.empty_like(G)
+    for s in range(0, T - 1, chunk):
+        e = min(s + chunk, T - 1)
+        k = e - s
+        Pf = c_f[s:e].movedim(0, -2).reshape(n, n, k * N)                  # Σ⁺_t
+        Pp = c_p[s:e].movedim(0, -2).reshape(n, n, k * N)                  # Σ⁻_{t+1}
+        FP = (F @ Pf.reshape(n, n * k * N)).view(n, n, k * N)                 # F Σ⁺
+        X = _cholesky_solve_soa(_cholesky_soa(Pp), FP)                     # (Σ⁻)⁻¹ F Σ⁺ = Gᵀ
+        Gs = X.transpose(0, 1)
+        A = (eye.reshape(n * n, 1) - to_GF @ Gs.reshape(n * n, k * N)).view(n, n, k * N)   # I − G F
+        GQ = _mm(Gs, Q.unsqueeze(-1))                                         # G Q
+        Ls = _mm_t(_mm(A, Pf), A) + _mm_t(GQ, Gs)
+        G[s:e] = Gs.reshape(n, n, k, N).movedim(2, 0)
+        Lc[s:e] = Ls.reshape(n, n, k, N).movedim(2, 0)
+    M = torch.empty(T, n, N, dtype=F.dtype, device=F.device)
+    C = torch.empty(T, n, n, N, dtype=F.dtype, device=F.device)
+    M[T - 1], C[T - 1] = m_f[T - 1], c_f[T - 1]
+    for t in range(T - 2, -1, -1):
+        g = G[t]
+        d = M[t + 1] - m_p[t]
+        torch.add(m_f[t], (g * d.unsqueeze(0)).sum(1), out=M[t])
+        torch.add(Lc[t], _mm_t(_mm(g, C[t + 1]), g), out=C[t])
+    mean = M.movedim(-1, 0).reshape(*batch, T, n)
+    cov = C.movedim(-1, 0).reshape(*batch, T, n, n)
+    return Gaussian(mean, _sym(cov))
 
 
 def _compact(x: Tensor, k: int) -> Tensor:
