@@ -270,7 +270,7 @@ def kalman_filter_reference(
     r"""The book's Kalman filter loop: for :math:`t = 1..T`, update with :math:`y_t`
     (Eq. kf-update, :func:`kf_update`), then predict :math:`z_{t+1}` (Eq. kf-predict,
     :func:`kf_predict`). Same signature and result as :func:`kalman_filter`."""
-    y, mask, offsets, _ = _check_filter_inputs(y, init, F, H, Q, R, mask, B, u, validate)
+    y, mask, offsets, batch = _check_filter_inputs(y, init, F, H, Q, R, mask, B, u, validate)
     eye = torch.eye(init.dim, dtype=y.dtype, device=y.device)
     prior, priors, posteriors, next_priors, logliks = init, [], [], [], []
     for t in range(y.shape[-2]):
@@ -278,14 +278,13 @@ def kalman_filter_reference(
         posterior, loglik = kf_update(prior, H, R, y[..., t, :], mask_t, validate=False)
         u_t = None if offsets is None else offsets[..., t, :]          # B u_t, applied with B = I
         next_prior = kf_predict(posterior, F, Q, None if u_t is None else eye, u_t, validate=False)
-        priors.append(prior)
-        posteriors.append(posterior)
-        next_priors.append(next_prior)
-        logliks.append(loglik)
+        priors.append(prior.expand(*batch))
+        posteriors.append(posterior.expand(*batch))
+        next_priors.append(next_prior.expand(*batch))
+        logliks.append(loglik.expand(batch))
         prior = next_prior
-    batch = torch.broadcast_shapes(*(ll.shape for ll in logliks))
     return FilterResult(stack_gaussians(priors), stack_gaussians(posteriors), stack_gaussians(next_priors),
-                        torch.stack([ll.expand(batch) for ll in logliks], -1))
+                        torch.stack(logliks, -1))
 
 
 def kalman_filter(
@@ -516,7 +515,7 @@ def _filter_fast(
 
 
 class _SequenceStep:
-    """One step of the per-sequence fast path for unbatched ``F, H, Q, R`` on ``N``
+    r"""One step of the per-sequence fast path for unbatched ``F, H, Q, R`` on ``N``
     covariances stored "structure of arrays" (``Σ: (n, n, N)``, ``μ: (n, N)``): every map that
     is linear in :math:`\Sigma` or :math:`K` is one GEMM with a constant matrix, products of two
     per-sequence matrices are broadcast multiply-and-sum over the contiguous batch axis, the
