@@ -711,13 +711,14 @@ def _cholesky_solve_soa(L: Tensor, Bm: Tensor) -> Tensor:
     return X
 
 
-def _rts_per_sequence(post: Gaussian, nxt: Gaussian, F: Tensor, Q: Tensor, chunk: int = 128) -> Gaussian:
+def _rts_per_sequence(post: Gaussian, nxt: Gaussian, F: Tensor, Q: Tensor) -> Gaussian:
     """:func:`rts_smoother` for a covariance per sequence and unbatched ``F, Q``, without a
     gradient: batch-last layout, gains and conditional covariances (Joseph form) for blocks of
-    ``chunk`` steps at once, then 9 elementwise operations per step backwards."""
+    steps at once (about 32k matrices per block), then 9 elementwise operations per step backwards."""
     T, n = post.mean.shape[-2], post.dim
     batch = post.batch_shape[:-1]
     N = math.prod(batch)
+    chunk = max(1, 32768 // N)
 
     def soa(x: Tensor, k: int) -> Tensor:        # (*batch, T, *event) -> (T, *event, N)
         x = x.expand(*batch, T, *x.shape[x.ndim - k:]).reshape(N, T, *x.shape[x.ndim - k:])
