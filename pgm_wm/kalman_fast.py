@@ -84,28 +84,34 @@ def _filter_fast(
         op_F = _sandwich_operator(F)
         steady_ok = mask is None and not needs_grad
         P, Ps, Ks, Sinvs, logdets, Pps = init.cov, [], [], [], [], []
-        steady = None
+        t_steady = T                           # first step from which everything repeats
         for t in range(T):
             Ps.append(P)
-            if steady is None:
-                step = _joseph_step(P, H, R, None if w is None else w[t], eye)
-                nxt = _predict_cov(step[0], F, Q, op_F)
-                if steady_ok and torch.equal(nxt, P):
-                    steady = step
-            else:
-                step, nxt = steady, P
-            Pps.append(step[0])
-            Ks.append(step[1])
-            Sinvs.append(step[2])
-            logdets.append(step[3])
+            step = _joseph_step(P, H, R, None if w is None else w[t], eye)
+            nxt = _predict_cov(step[0], F, Q, op_F)
+            for lst, x in zip((Pps, Ks, Sinvs, logdets), step):
+                lst.append(x)
+            if steady_ok and torch.equal(nxt, P):
+                t_steady = t
+                break
             P = nxt
-        Ps.append(P)
-        P_all, Pp_all = torch.stack(Ps), torch.stack(Pps)                      # (T+1, n, n), (T, n, n)
-        K_all, Sinv_all, logdet_all = torch.stack(Ks), torch.stack(Sinvs), torch.stack(logdets)
+        Ps.append(nxt)
+        rest = T - len(Pps)                     # steps after the steady state: views of the last one
+
+        def seq(xs: list[Tensor]) -> Tensor:
+            out = torch.stack(xs)
+            return out if rest == 0 else torch.cat([out, out[-1:].expand(rest, *out.shape[1:])])
+
+        P_all, Pp_all = seq(Ps), seq(Pps)                                       # (T+1, n, n), (T, n, n)
+        K_all, Sinv_all, logdet_all = seq(Ks), seq(Sinvs), seq(logdets)
         # Means: μ⁻_{t+1} = A_t μ⁻_t + c_t with A_t = F(I − K_t H), c_t = F K_t y_t + B u_t.
         FK = F @ K_all                                                          # (T, n, m)
         A_t = (F - FK @ H).transpose(-1, -2)                                    # (T, n, n), transposed
-        c = torch.bmm(y_tm, FK.transpose(-1, -2))                               # (T, N, n)
+        ts = min(t_steady, T)
+        y_bt = flat(y, 2)                                                        # (N, T, m)
+        c = torch.bmm(y_tm[:ts], FK[:ts].transpose(-1, -2))                     # transient: per step
+        if ts < T:                                                              # steady: one GEMM
+            c = torch.cat([c, (y_bt[:, ts:] @ FK[ts].T).transpose(0, 1)])
         if off_tm is not None:
             c = c + off_tm
         mean0 = flat(init.mean, 1)
@@ -120,7 +126,10 @@ def _filter_fast(
             for t in range(T):
                 torch.addmm(c[t], M[t], A_t[t], out=M[t + 1])
         innov = y_tm - M[:T] @ H.transpose(-1, -2)                               # (T, N, m)
-        M_post = M[:T] + torch.bmm(innov, K_all.transpose(-1, -2))
+        gain_term = torch.bmm(innov[:ts], K_all[:ts].transpose(-1, -2))
+        if ts < T:
+            gain_term = torch.cat([gain_term, innov[ts:] @ K_all[ts].T])
+        M_post = M[:T] + gain_term
         S_inv_tm, logdet_tm = Sinv_all.unsqueeze(1), logdet_all.unsqueeze(1)
         cov_prior = P_all[:T].unsqueeze(1)
         cov_post = Pp_all.unsqueeze(1)
