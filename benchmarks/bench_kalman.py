@@ -203,15 +203,17 @@ def make_filterpy():
     return run
 
 
-CONTENDERS: dict[str, tuple[Callable, bool]] = {   # name -> (maker, slow: time on a subset)
-    "pgm_wm reference": (lambda: make_pgm("reference"), True),
+# name -> (maker, slow): "subset" = one run over --slow-seqs sequences scaled linearly (loops over
+# sequences), "once" = one run over all sequences (batched but slow), False = median of --repeats.
+CONTENDERS: dict[str, tuple[Callable, str | bool]] = {
+    "pgm_wm reference": (lambda: make_pgm("reference"), "once"),
     "pgm_wm fast": (lambda: make_pgm("fast"), False),
-    "pgm_wm parallel": (lambda: make_pgm("parallel"), False),
+    "pgm_wm parallel": (lambda: make_pgm("parallel"), "once"),
     "dynamax (jit+vmap)": (make_dynamax, False),
     "simdkalman": (make_simdkalman, False),
     "torch-kf": (make_torch_kf, False),
-    "statsmodels": (make_statsmodels, True),
-    "filterpy": (make_filterpy, True),
+    "statsmodels": (make_statsmodels, "subset"),
+    "filterpy": (make_filterpy, "subset"),
 }
 
 
@@ -253,7 +255,7 @@ def table(args) -> dict:
         except ImportError as err:
             print(f"{name}: skipped ({err})", flush=True)
             continue
-        k = min(args.slow_seqs, args.n_seq) if slow else args.n_seq
+        k = min(args.slow_seqs, args.n_seq) if slow == "subset" else args.n_seq
         rows[name] = {}
         for setting, vmask in (("all observed", None), ("10% missing", valid)):
             for smooth in (False, True):
@@ -287,6 +289,8 @@ def print_table(rows: dict, args) -> str:
 
 
 def scaling(args) -> dict:
+    """Median wall/CPU seconds over T (batch 1, 1 thread) and over the batch (T = 1000, 1 and 2
+    threads), 10 % missing per sequence, filter and smoother."""
     out: dict = {}
     Ts = [1000, 10000, 100000] if not args.quick else [200, 2000]
     Ns = [1, 16, 256, 4096] if not args.quick else [1, 16]
@@ -295,25 +299,26 @@ def scaling(args) -> dict:
         makers["dynamax (jit+vmap)"] = make_dynamax()
     except ImportError:
         pass
-    for threads in (1, 2):
+    plan = [(1, "T", Ts), (1, "batch", Ns), (2, "batch", Ns)]
+    for threads, axis, grid in plan:
         torch.set_num_threads(threads)
-        for axis, grid in (("T", Ts), ("batch", Ns)):
-            for v in grid:
-                n_seq, T = (1, v) if axis == "T" else (v, 1000 if not args.quick else 200)
-                ys = simulate(n_seq, T, seed=2)
-                valid = np.random.default_rng(3).random(ys.shape[:2]) >= 0.1
-                for name, run in makers.items():
-                    if name == "pgm_wm parallel" and n_seq * T > 300_000:
-                        continue      # memory: the scan holds several (T, N, n, n) tensors
-                    if name.startswith("dynamax") and threads == 2:
-                        continue      # XLA's thread count is fixed at start-up (1 thread)
-                    for smooth in (False, True):
-                        run(ys, valid, smooth)                               # warm-up / compile
-                        reps = 1 if n_seq * T >= 100_000 else 3
-                        wall, cpu, _ = timed(lambda: run(ys, valid, smooth), reps)
-                        key = f"{name}|{'smoother' if smooth else 'filter'}|threads={threads}|{axis}"
-                        out.setdefault(key, []).append(dict(value=v, wall=wall, cpu=cpu))
-                print(f"scaling threads={threads} {axis}={v}: done", flush=True)
+        for v in grid:
+            n_seq, T = (1, v) if axis == "T" else (v, 1000 if not args.quick else 200)
+            ys = simulate(n_seq, T, seed=2)
+            valid = np.random.default_rng(3).random(ys.shape[:2]) >= 0.1
+            for name, run in makers.items():
+                if name == "pgm_wm parallel" and n_seq * T > 300_000:
+                    continue      # memory: the scan holds several (T, N, n, n) tensors
+                if name.startswith("dynamax") and threads == 2:
+                    continue      # XLA's thread count is fixed at start-up (1 thread)
+                for smooth in (False, True):
+                    if name.startswith("dynamax"):
+                        run(ys, valid, smooth)                               # compile (excluded)
+                    reps = 1 if n_seq * T >= 100_000 else 3
+                    wall, cpu, _ = timed(lambda: run(ys, valid, smooth), reps)
+                    key = f"{name}|{'smoother' if smooth else 'filter'}|threads={threads}|{axis}"
+                    out.setdefault(key, []).append(dict(value=v, wall=wall, cpu=cpu))
+            print(f"scaling threads={threads} {axis}={v}: done", flush=True)
     torch.set_num_threads(1)
     return out
 
