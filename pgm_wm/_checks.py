@@ -173,3 +173,25 @@ def mask_observations(obs: Tensor, mask: Tensor | None) -> Tensor:
         return obs
     mask = check_mask("mask", mask, tuple(obs.shape[:-1]))
     return torch.where(mask[..., None], obs, torch.zeros((), dtype=obs.dtype, device=obs.device))
+
+
+_SUPPORTED_FLOAT_DTYPES = (torch.float32, torch.float64)
+
+
+def check_same_dtype(names: Sequence[str], tensors: Sequence[Tensor | None]) -> torch.dtype:
+    """One dtype rule for the dense Gaussian functions: every given tensor (``None`` is skipped)
+    has the dtype of the first, which must be float32 or float64 (half precision cannot hold the
+    covariance recursions). Raises ``ValueError`` naming the first offending argument."""
+    dtype: torch.dtype | None = None
+    first = ""
+    for name, x in zip(names, tensors):
+        if x is None:
+            continue
+        if x.dtype not in _SUPPORTED_FLOAT_DTYPES:
+            raise ValueError(f"{name}: dtype {x.dtype} is not supported; use torch.float32 or torch.float64")
+        if dtype is None:
+            dtype, first = x.dtype, name
+        elif x.dtype != dtype:
+            raise ValueError(f"{name}: dtype {x.dtype} differs from {first}'s dtype {dtype}; "
+                             "convert all inputs to one dtype")
+    return dtype if dtype is not None else torch.get_default_dtype()

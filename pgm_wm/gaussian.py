@@ -47,7 +47,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from ._checks import check_last_dims, check_same_batch, check_spd, check_tensor
+from ._checks import check_finite, check_last_dims, check_same_batch, check_same_dtype, check_spd, check_tensor
 from .beliefs import Gaussian  # the class lives with the belief family; re-exported here
 
 __all__ = [
@@ -169,20 +169,20 @@ def _update_cov(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     r"""Covariance half of Eq. (gauss-condition) in Kalman form, unchecked.
 
-    With :math:`S = H\Sigma H^\top + R = LL^\top` (itself Eq. gauss-marginal) and
-    :math:`W = L^{-1}H\Sigma`:
+    With :math:`S = H\Sigma H^\top + R = LL^\top` (itself Eq. gauss-marginal) the transposed
+    gain is :math:`K^\top = S^{-1}H\Sigma = L^{-\top}(L^{-1}H\Sigma)`, two triangular solves and
+    no inverse. The posterior covariance is computed in the **Joseph form**, Eq. (kf-joseph),
 
-    .. math:: K^\top = S^{-1}H\Sigma = L^{-\top}W,\qquad
-              \Sigma^+ = \Sigma - KSK^\top = \Sigma - W^\top W,
+    .. math:: \Sigma^+ = (I - KH)\,\Sigma\,(I - KH)^\top + K R K^\top ,
 
-    two triangular solves and no inverse; :math:`\Sigma^+` is symmetric by construction. The
-    covariance does not depend on the observed value, so this half can run before (or without)
-    the means.
+    which equals :math:`\Sigma - KSK^\top` exactly but is a sum of two positive semi-definite
+    terms, so it stays positive where :math:`\Sigma - KSK^\top` cancels to zero or below
+    (an observation variance far below the prior variance, in either dtype). The covariance
+    does not depend on the observed value, so this half can run before (or without) the means.
 
     Args:
         cov: ``(..., n, n)``; H: ``(..., m, n)``; R: ``(..., m, m)``.
-        weight: optional ``(...)`` 0/1 factor; where 0 the update is skipped exactly
-            (:math:`W = 0`, :math:`K = 0`).
+        weight: optional ``(...)`` 0/1 factor; where 0 the update is skipped exactly (:math:`K = 0`).
         op_H: optional :func:`_sandwich_operator` of ``H`` (speed only).
 
     Returns ``(Σ⁺, L, Kᵀ, info)``: ``L: (..., m, m)`` the Cholesky factor of :math:`S` (for the
@@ -195,9 +195,11 @@ def _update_cov(
     W = torch.linalg.solve_triangular(chol, HS, upper=False)                         # L⁻¹ H Σ
     Kt = torch.linalg.solve_triangular(chol.transpose(-1, -2), W, upper=True)        # S⁻¹ H Σ
     if weight is not None:
-        w = weight[..., None, None]
-        W, Kt = W * w, Kt * w
-    return _addmm(cov, W.transpose(-1, -2), W, alpha=-1.0), chol, Kt, info
+        Kt = Kt * weight[..., None, None]
+    K = Kt.transpose(-1, -2)
+    n = cov.shape[-1]
+    A = torch.eye(n, dtype=cov.dtype, device=cov.device) - K @ H                     # I − K H
+    return _sym(A @ cov @ A.transpose(-1, -2) + K @ R @ Kt), chol, Kt, info
 
 
 def _update_mean(
@@ -406,19 +408,29 @@ def condition_with_evidence(
               \mu^+ = \mu + K(y - H\mu - b),\quad \Sigma^+ = \Sigma - K S K^\top,
 
     and the evidence :math:`\log p(y) = \log\mathcal N(y\mid H\mu + b, S)` (Eq. gauss-evidence).
-    Computed with the Cholesky factor of :math:`S` and two triangular solves, no inverse
-    (``_update_cov``); :math:`\Sigma^+` is exactly symmetric.
+    Computed with the Cholesky factor of :math:`S` and two triangular solves, no inverse;
+    :math:`\Sigma^+` in the Joseph form Eq. (kf-joseph), symmetric positive semi-definite
+    (``_update_cov``).
 
     Shapes: ``H: (..., m, n)``, ``R: (..., m, m)``, ``y: (..., m)``, ``offset: (..., m)``.
     Returns ``(posterior, log p(y))`` with ``log p(y): (...)``.
-    With ``validate`` (default) ``R`` must be symmetric positive definite.
+    With ``validate`` (default) ``R`` must be symmetric positive definite, ``y``, ``H`` and the
+    prior finite, and all tensors of one floating dtype (float32 or float64); each failure
+    raises a ``ValueError`` naming the argument. ``validate=False`` skips every value check
+    (a non-positive-definite ``S`` then gives NaN instead of an error).
     """
     _check_observation(prior, H, R, y, offset)
     if validate:
+        check_same_dtype(("y", "prior.mean", "prior.cov", "H", "R"), (y, prior.mean, prior.cov, H, R))
+        check_finite("prior.mean", prior.mean.detach())
+        check_finite("prior.cov", prior.cov.detach())
+        check_finite("H", H.detach())
         check_spd("R", R.detach())
+        check_finite("y", y.detach())
     mean, cov, loglik, info = _condition_core(prior.mean, prior.cov, H, R, y, offset)
-    if bool((info != 0).any()):
-        raise ValueError("R: the innovation covariance H Σ Hᵀ + R is not positive definite")
+    if validate and bool((info != 0).any()):
+        raise ValueError("prior.cov: the innovation covariance H Σ Hᵀ + R is not positive definite "
+                         "although R is (the prior covariance or H contains NaN/inf or is too large)")
     return Gaussian(mean, cov), loglik
 
 

@@ -112,18 +112,19 @@ def test_filter_smoother_loglik_match_filterpy(seed: int, n: int, m: int, T: int
     valid = rng.random(T) >= p_missing
     (mu, cov, mu_p, cov_p), lls, kf = filterpy_run(s, zs, valid)
     res = ours(s, zs, valid, mask_nan=True)
-    close(res.filtered.mean, mu)
-    close(res.filtered.cov, cov)
+    close(res.posterior.mean, mu)
+    close(res.posterior.cov, cov)
     # filterpy's "predictions" after step i are our priors for step i + 1
-    close(res.predicted.mean[1:], mu_p[:-1])
-    close(res.predicted.cov[1:], cov_p[:-1])
-    close(res.next_prior.mean, mu_p[-1])
-    close(res.next_prior.cov, cov_p[-1])
-    close(res.predicted.mean[0], s["x0"], tol=0)
+    close(res.prior.mean[1:], mu_p[:-1])
+    close(res.prior.cov[1:], cov_p[:-1])
+    close(res.next_prior.mean[-1], mu_p[-1])
+    close(res.next_prior.cov[-1], cov_p[-1])
+    close(res.next_prior.mean[:-1], res.prior.mean[1:], tol=0)
+    close(res.prior.mean[0], s["x0"], tol=0)
     close(res.log_likelihoods, lls)
     close(res.log_likelihood, lls.sum())
     xs, Ps, _, _ = kf.rts_smoother(mu, cov)
-    sm = rts_smoother(res, t(s["F"]))
+    sm = rts_smoother(res, t(s["F"]), t(s["Q"]))
     close(sm.mean, xs)
     close(sm.cov, Ps)
 
@@ -137,9 +138,9 @@ def test_control_input_matches_filterpy(seed: int, n: int, m: int, k: int, T: in
     valid = rng.random(T) >= 0.2
     (mu, cov, mu_p, cov_p), lls, _ = filterpy_run(s, zs, valid, us)
     res = ours(s, zs, valid, us)
-    close(res.filtered.mean, mu)
-    close(res.filtered.cov, cov)
-    close(res.next_prior.mean, mu_p[-1])
+    close(res.posterior.mean, mu)
+    close(res.posterior.cov, cov)
+    close(res.next_prior.mean[-1], mu_p[-1])
     close(res.log_likelihoods, lls)
 
 
@@ -154,7 +155,7 @@ def test_single_steps_match_filterpy(seed: int, n: int, m: int, k: int) -> None:
     for _ in range(3):
         z = rng.standard_normal(m)
         kf.update(z)
-        belief, ll = kf_update(belief, t(z), t(s["H"]), t(s["R"]))
+        belief, ll = kf_update(belief, t(s["H"]), t(s["R"]), t(z))
         close(belief.mean, kf.x)
         close(belief.cov, kf.P)
         close(ll, kf.log_likelihood)
@@ -215,7 +216,7 @@ def test_smoother_and_loglik_equal_dense_conditioning(seed: int, n: int, m: int,
     else:
         post_mean, post_cov, ref_ll = mean[zi], cov[np.ix_(zi, zi)], 0.0
     res = ours(s, zs, valid, us)
-    sm = rts_smoother(res, t(s["F"]))
+    sm = rts_smoother(res, t(s["F"]), t(s["Q"]))
     for i in range(T):
         close(sm.mean[i], post_mean[i * n:(i + 1) * n])
         close(sm.cov[i], post_cov[i * n:(i + 1) * n, i * n:(i + 1) * n])
@@ -234,12 +235,12 @@ def test_all_missing_random_walk_variance_grows_by_q_per_step() -> None:
         torch.tensor([[1.0]], dtype=DT), mask=torch.zeros(2, T, dtype=torch.bool),
     )
     steps = torch.arange(T, dtype=DT)
-    close(res.filtered.cov[..., 0, 0], (p0 + q * steps).expand(2, T), tol=1e-12)
-    close(res.predicted.cov[..., 0, 0], (p0 + q * steps).expand(2, T), tol=1e-12)
-    close(res.next_prior.cov[..., 0, 0], torch.full((2,), p0 + q * T, dtype=DT), tol=1e-12)
-    assert bool((res.filtered.mean == 1.5).all())
+    close(res.posterior.cov[..., 0, 0], (p0 + q * steps).expand(2, T), tol=1e-12)
+    close(res.prior.cov[..., 0, 0], (p0 + q * steps).expand(2, T), tol=1e-12)
+    close(res.next_prior.cov[..., -1, 0, 0], torch.full((2,), p0 + q * T, dtype=DT), tol=1e-12)
+    assert bool((res.posterior.mean == 1.5).all())
     assert bool((res.log_likelihoods == 0).all())
-    sm = rts_smoother(res, torch.eye(1, dtype=DT))
+    sm = rts_smoother(res, torch.eye(1, dtype=DT), torch.tensor([[q]], dtype=DT))
     assert bool(torch.isfinite(sm.mean).all()) and bool(torch.isfinite(sm.cov).all())
     # with no data the smoother cannot sharpen anything: the smoothed belief at t is the
     # backward conditioning of a pure random walk, variance p0 + q t exactly
@@ -262,18 +263,18 @@ def test_long_sequence_reaches_riccati_steady_state() -> None:
     T = 10_000
     zs = np.cumsum(rng.standard_normal((2, T, 2)), axis=1) * 5     # wandering far from the origin
     res = kalman_filter(t(zs), Gaussian(torch.zeros(4, dtype=DT), 100 * torch.eye(4, dtype=DT)), t(F), t(H), t(Q), t(R))
-    sm = rts_smoother(res, t(F))
-    for x in (res.filtered.mean, res.filtered.cov, res.log_likelihoods, sm.mean, sm.cov):
+    sm = rts_smoother(res, t(F), t(Q))
+    for x in (res.posterior.mean, res.posterior.cov, res.log_likelihoods, sm.mean, sm.cov):
         assert bool(torch.isfinite(x).all())
     P_inf = solve_discrete_are(F.T, H.T, Q, R)   # steady-state prior covariance
     for b in range(2):
-        close(res.next_prior.cov[b], P_inf, tol=1e-9)
+        close(res.next_prior.cov[b, -1], P_inf, tol=1e-9)
     # filterpy over the last 300 steps, started from our prior at that point
     t0 = T - 300
-    s = dict(F=F, H=H, Q=Q, R=R, x0=res.predicted.mean[1, t0].numpy(), P0=res.predicted.cov[1, t0].numpy())
+    s = dict(F=F, H=H, Q=Q, R=R, x0=res.prior.mean[1, t0].numpy(), P0=res.prior.cov[1, t0].numpy())
     (mu, cov, _, _), lls, _ = filterpy_run(s, zs[1, t0:], np.ones(300, bool))
-    close(res.filtered.mean[1, t0:], mu)
-    close(res.filtered.cov[1, t0:], cov)
+    close(res.posterior.mean[1, t0:], mu)
+    close(res.posterior.cov[1, t0:], cov)
     close(res.log_likelihoods[1, t0:], lls)
 
 
@@ -287,8 +288,8 @@ def test_steady_state_reuse_matches_full_recursion() -> None:
     fast = kalman_filter(y, *args)
     Qg = t(Q).requires_grad_()
     slow = kalman_filter(y, args[0], args[1], args[2], Qg, args[4])
-    close(fast.filtered.cov, slow.filtered.cov.detach(), tol=1e-12)
-    close(fast.filtered.mean, slow.filtered.mean.detach(), tol=1e-12)
+    close(fast.posterior.cov, slow.posterior.cov.detach(), tol=1e-12)
+    close(fast.posterior.mean, slow.posterior.mean.detach(), tol=1e-12)
     close(fast.log_likelihoods, slow.log_likelihoods.detach(), tol=1e-12)
 
 
@@ -304,13 +305,13 @@ def test_batch_with_batched_parameters_equals_loop() -> None:
     stack = lambda key: t(np.stack([s[key] for s in systems]))  # noqa: E731
     res = kalman_filter(t(zs), Gaussian(stack("x0"), stack("P0")), stack("F"), stack("H"), stack("Q"), stack("R"),
                         mask=torch.as_tensor(valid))
-    sm = rts_smoother(res, stack("F"))
+    sm = rts_smoother(res, stack("F"), stack("Q"))
     for b in range(B):
         rb = ours(systems[b], zs[b], valid[b])
-        close(res.filtered.mean[b], rb.filtered.mean, tol=1e-12)
-        close(res.filtered.cov[b], rb.filtered.cov, tol=1e-12)
+        close(res.posterior.mean[b], rb.posterior.mean, tol=1e-12)
+        close(res.posterior.cov[b], rb.posterior.cov, tol=1e-12)
         close(res.log_likelihoods[b], rb.log_likelihoods, tol=1e-12)
-        close(sm.mean[b], rts_smoother(rb, t(systems[b]["F"])).mean, tol=1e-12)
+        close(sm.mean[b], rts_smoother(rb, t(systems[b]["F"]), t(systems[b]["Q"])).mean, tol=1e-12)
 
 
 def test_shared_covariance_is_a_broadcast_view_with_full_shape() -> None:
@@ -318,11 +319,11 @@ def test_shared_covariance_is_a_broadcast_view_with_full_shape() -> None:
     s = random_system(rng, 2, 1)
     y = t(rng.standard_normal((5, 7, 1)))
     res = kalman_filter(y, Gaussian(t(s["x0"]), t(s["P0"])), t(s["F"]), t(s["H"]), t(s["Q"]), t(s["R"]))
-    assert res.filtered.mean.shape == (5, 7, 2) and res.filtered.cov.shape == (5, 7, 2, 2)
+    assert res.posterior.mean.shape == (5, 7, 2) and res.posterior.cov.shape == (5, 7, 2, 2)
     assert res.log_likelihoods.shape == (5, 7)
     one = ours(s, y[3].numpy(), np.ones(7, bool))
-    close(res.filtered.cov[3], one.filtered.cov, tol=1e-13)
-    close(res.filtered.mean[3], one.filtered.mean, tol=1e-13)
+    close(res.posterior.cov[3], one.posterior.cov, tol=1e-13)
+    close(res.posterior.mean[3], one.posterior.mean, tol=1e-13)
 
 
 def test_per_sequence_masks_and_batched_controls_equal_loop() -> None:
@@ -337,16 +338,16 @@ def test_per_sequence_masks_and_batched_controls_equal_loop() -> None:
     res = kalman_filter(t(zs), *args, mask=torch.as_tensor(valid), B=t(s["B"]), u=t(us))
     same = kalman_filter(t(zs), *args, mask=torch.as_tensor(np.broadcast_to(valid[:1], valid.shape).copy()))
     ctl = kalman_filter(t(zs[0]), *args, B=t(s["B"]), u=t(us))          # y unbatched, u batched
-    assert ctl.filtered.mean.shape == (5, 11, 3)
+    assert ctl.posterior.mean.shape == (5, 11, 3)
     for b in range(5):
         rb = ours(s, zs[b], valid[b], us[b])
-        close(res.filtered.mean[b], rb.filtered.mean, tol=1e-12)
-        close(res.filtered.cov[b], rb.filtered.cov, tol=1e-12)
+        close(res.posterior.mean[b], rb.posterior.mean, tol=1e-12)
+        close(res.posterior.cov[b], rb.posterior.cov, tol=1e-12)
         close(res.log_likelihoods[b], rb.log_likelihoods, tol=1e-12)
         r0 = ours(s, zs[b], valid[0])
-        close(same.filtered.mean[b], r0.filtered.mean, tol=1e-12)
+        close(same.posterior.mean[b], r0.posterior.mean, tol=1e-12)
         close(same.log_likelihoods[b], r0.log_likelihoods, tol=1e-12)
-        close(ctl.filtered.mean[b], ours(s, zs[0], np.ones(11, bool), us[b]).filtered.mean, tol=1e-12)
+        close(ctl.posterior.mean[b], ours(s, zs[0], np.ones(11, bool), us[b]).posterior.mean, tol=1e-12)
 
 
 def test_masked_observations_do_not_affect_values_or_gradients() -> None:
@@ -386,7 +387,7 @@ def test_gradcheck_loglik_wrt_noise_parameters() -> None:
     def f(log_q, log_r, mu0):
         res = kalman_filter(y, Gaussian(mu0, torch.eye(2, dtype=DT)), F, H, torch.diag(log_q.exp()),
                             torch.diag(log_r.exp()), mask=mask, validate=False)
-        return res.log_likelihood, (rts_smoother(res, F).mean * weights).sum()
+        return res.log_likelihood, (rts_smoother(res, F, torch.diag(log_q.exp())).mean * weights).sum()
 
     assert torch.autograd.gradcheck(f, (log_q, log_r, mu0))
 
@@ -439,7 +440,7 @@ def test_bad_inputs_name_the_argument() -> None:
         (dict(F=torch.eye(3, dtype=DT)), "F"),
         (dict(H=torch.ones(2, n, dtype=DT)), "H"),
         (dict(Q=torch.eye(3, dtype=DT)), "Q"),
-        (dict(y=torch.zeros(3, T, m)), "F"),  # float32 data with float64 parameters
+        (dict(y=torch.zeros(3, T, m)), "init.mean"),  # float32 data with float64 parameters
         (dict(y=torch.full((3, T, m), float("nan"), dtype=DT)), "y"),
         (dict(y=torch.zeros(T, dtype=DT)), "y"),
         (dict(u=torch.zeros(3, T, 1, dtype=DT)), "B"),
@@ -451,12 +452,12 @@ def test_bad_inputs_name_the_argument() -> None:
         with pytest.raises(ValueError, match=f"^{name}"):
             run(**kw)
     with pytest.raises(ValueError, match="^mask"):
-        kf_update(init, torch.zeros(m, dtype=DT), H, R, mask=torch.ones(2, dtype=torch.bool))
+        kf_update(init, H, R, torch.zeros(m, dtype=DT), mask=torch.ones(2, dtype=torch.bool))
     with pytest.raises(ValueError, match="^Q"):
         kf_predict(init, F, -Q)
     with pytest.raises(ValueError, match="^B"):
         kf_predict(init, F, Q, B=torch.ones(n, 1, dtype=DT))
     with pytest.raises(ValueError, match="^F"):
-        rts_smoother(run(), torch.eye(3, dtype=DT))
+        rts_smoother(run(), torch.eye(3, dtype=DT), Q)
     with pytest.raises(ValueError, match="^result"):
-        rts_smoother("not a result", F)  # type: ignore[arg-type]
+        rts_smoother("not a result", F, Q)  # type: ignore[arg-type]
