@@ -128,12 +128,11 @@ def test_linear_acrkn_equals_dense_kalman_filter_with_control():
     init = Gaussian(torch.zeros(2 * m, dtype=DT), 2.0 * torch.eye(2 * m, dtype=DT))
     kf = kalman_filter(y, init, F, H, torch.diag(trans.trans_var.detach()), torch.diag(r), mask,
                        B=ctrl.B.detach(), u=u)
-    nxt = Gaussian(torch.cat([kf.predicted.mean[:, 1:], kf.next_prior.mean[:, None]], 1),
-                   torch.cat([kf.predicted.cov[:, 1:], kf.next_prior.cov[:, None]], 1))
+    nxt = kf.next_prior
     dense = out.next_prior.to_dense()
     torch.testing.assert_close(dense.mean, nxt.mean, rtol=1e-10, atol=1e-10)
     torch.testing.assert_close(dense.cov, nxt.cov, rtol=1e-10, atol=1e-10)
-    torch.testing.assert_close(out.posterior.to_dense().cov, kf.filtered.cov, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(out.posterior.to_dense().cov, kf.posterior.cov, rtol=1e-10, atol=1e-10)
 
 
 # --------------------------------------------------------------- action affects only the mean

@@ -84,7 +84,7 @@ def test_ba_equals_dense_and_sequential_kalman(N, d, b, seed):
     # N sequential Kalman updates with H = I and no dynamics
     belief = prior
     for n in range(N):
-        belief, _ = kf_update(belief, r[:, n], eye, torch.diag_embed(v[:, n]))
+        belief, _ = kf_update(belief, eye, torch.diag_embed(v[:, n]), r[:, n])
     torch.testing.assert_close(mean, belief.mean, rtol=1e-9, atol=1e-10)
     torch.testing.assert_close(torch.diag_embed(var), belief.cov, rtol=1e-9, atol=1e-10)
 

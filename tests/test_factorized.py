@@ -83,7 +83,7 @@ def test_update_equals_dense_kalman_update(m, batch, seed):
     w = torch.randn(batch, m, generator=gen, dtype=D)
     w_var = 0.05 + 2.0 * torch.rand(batch, m, generator=gen, dtype=D)
     post = factorized_update(prior, DiagGaussian(w, w_var))
-    dense, _ = kf_update(prior.to_dense(), w, obs_matrix(m), torch.diag_embed(w_var))
+    dense, _ = kf_update(prior.to_dense(), obs_matrix(m), torch.diag_embed(w_var), w)
     torch.testing.assert_close(post.mean, dense.mean, rtol=1e-10, atol=1e-10)
     torch.testing.assert_close(post.to_dense().cov, dense.cov, rtol=1e-10, atol=1e-10)
     # the dense posterior keeps the factorized structure, so nothing was approximated
@@ -99,7 +99,7 @@ def test_thesis_printed_update_formulas_are_wrong():
     prior = random_belief(gen, (1,), m)
     w = torch.randn(1, m, generator=gen, dtype=D)
     w_var = 0.5 + torch.rand(1, m, generator=gen, dtype=D)
-    dense, _ = kf_update(prior.to_dense(), w, obs_matrix(m), torch.diag_embed(w_var))
+    dense, _ = kf_update(prior.to_dense(), obs_matrix(m), torch.diag_embed(w_var), w)
     ref = FactorizedBelief.from_dense(dense)
     S = prior.var_upper + w_var
     printed_u = prior.var_upper * prior.var_upper / S

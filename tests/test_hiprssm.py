@@ -221,12 +221,11 @@ def test_linear_hiprssm_equals_dense_kalman_filter_with_task_cause():
         u_aug = torch.cat([u[i], mu_l[i].expand(T, m)], -1)
         kf = kalman_filter(y[i], init, F, H, Q, torch.diag(r), mask[i],
                            B=torch.cat([ctrl.B.detach(), C], 1), u=u_aug)
-        want_mean = torch.cat([kf.predicted.mean[1:], kf.next_prior.mean[None]])
-        want_cov = torch.cat([kf.predicted.cov[1:], kf.next_prior.cov[None]])
+        want_mean, want_cov = kf.next_prior.mean, kf.next_prior.cov
         dense = out.next_prior.to_dense()
         torch.testing.assert_close(dense.mean[i], want_mean, rtol=1e-10, atol=1e-10)
         torch.testing.assert_close(dense.cov[i], want_cov, rtol=1e-10, atol=1e-10)
-        torch.testing.assert_close(out.posterior.to_dense().cov[i], kf.filtered.cov, rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(out.posterior.to_dense().cov[i], kf.posterior.cov, rtol=1e-10, atol=1e-10)
 
 
 @SETTINGS

@@ -154,11 +154,11 @@ def test_rkn_with_one_diagonal_basis_reproduces_the_dense_kalman_filter():
     ref = kalman_filter(y, init, A.detach(), H, torch.diag(tr.trans_var.detach()), torch.diag_embed(r[:, 0]), mask=mask)
     post = out.posterior.to_dense()
     prior = out.prior.to_dense()
-    torch.testing.assert_close(post.mean, ref.filtered.mean, rtol=1e-10, atol=1e-10)
-    torch.testing.assert_close(post.cov, ref.filtered.cov, rtol=1e-10, atol=1e-10)
-    torch.testing.assert_close(prior.mean, ref.predicted.mean.expand_as(prior.mean), rtol=1e-10, atol=1e-10)
-    torch.testing.assert_close(prior.cov, ref.predicted.cov.expand_as(prior.cov), rtol=1e-10, atol=1e-10)
-    torch.testing.assert_close(out.next_prior.at(-1).mean, ref.next_prior.mean, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(post.mean, ref.posterior.mean, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(post.cov, ref.posterior.cov, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(prior.mean, ref.prior.mean.expand_as(prior.mean), rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(prior.cov, ref.prior.cov.expand_as(prior.cov), rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(out.next_prior.at(-1).mean, ref.next_prior.mean[:, -1], rtol=1e-10, atol=1e-10)
 
 
 def test_filter_masked_steps_posterior_equals_prior_and_predicted_shifts():
