@@ -23,15 +23,16 @@ def main(argv: list[str] | None = None) -> int:
                    help="pam_arm_subset.npz to convert (default: $PGM_WM_PAM_SOURCE or shared/data/)")
     c = sub.add_parser("check", help="verify the files against SHA256SUMS")
     c.add_argument("--dir", default=None, help="data folder (default: $PGM_WM_DATA or <repo>/data)")
-    sub.add_parser("report", help="print the linear checks of pgm_wm.datasets.diagnostics")
+    sub.add_parser("report", help="print the checks of pgm_wm.datasets.diagnostics and .structure")
     args = parser.parse_args(argv)
     if args.command == "build":
         build_all(args.only, args.out, pam_source=args.pam_source)
         return 0
     if args.command == "report":
-        from .diagnostics import report
+        from . import diagnostics, structure
 
-        report()
+        diagnostics.report()
+        structure.report()
         return 0
     return check(Path(data_dir() if args.dir is None else args.dir))
 

@@ -57,6 +57,7 @@ __all__ = [
     "arm_terms",
     "pd_targets",
     "simulate_two_link_arm",
+    "rollout_two_link_arm",
 ]
 
 VERSION = "1.0"
@@ -140,6 +141,27 @@ def simulate_two_link_arm(seed: int, payload: np.ndarray, params: dict | None = 
     ref = pd_targets(rng, n, Ttot, p)
     noise = ou_process(rng, (n, Ttot, 2), dt, p["torque_noise_tau"], p["torque_noise"])
     mp_all = np.concatenate([np.repeat(payload[:, :1], burn, axis=1), payload], axis=1)
+    start = np.stack([ref[:, 0, 0], ref[:, 0, 1], np.zeros(n), np.zeros(n)], axis=-1)
+    state, torque = rollout_two_link_arm(start, ref, noise, mp_all, p)
+    state = state[:, burn:]
+    obs_noise = np.array([p["q_obs_noise"]] * 2 + [p["qd_obs_noise"]] * 2)
+    obs = state + obs_noise * rng.standard_normal((n, T, 4))
+    return {"obs": obs, "state": state, "torque": torque[:, burn:], "pd_target": ref[:, burn:]}
+
+
+def rollout_two_link_arm(state0: np.ndarray, ref: np.ndarray, noise: np.ndarray, payload: np.ndarray,
+                         params: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Closed loop of Eq. (arm-dynamics) and Eq. (arm-pd) from a given state (pure function).
+
+    ``state0 (n, 4)`` = ``(q1, q2, qd1, qd2)`` at frame 0; ``ref (n, T, 2)`` PD targets,
+    ``noise (n, T, 2)`` torque noise (zeros for a noise-free rollout), ``payload (n, T)``
+    in kg, all per frame. Returns the states ``(n, T, 4)`` at the start of each frame
+    and the torques ``(n, T, 2)`` applied during it. Used by :func:`simulate_two_link_arm`
+    and by the physics oracles of the diagnostics (true vs nominal payload).
+    """
+    p = {**DEFAULT_PARAMS, **(params or {})}
+    mp_all = np.asarray(payload, dtype=np.float64)
+    n, Ttot = mp_all.shape
     Kp1, Kp2 = p["Kp"]
     Kd1, Kd2 = p["Kd"]
     bf = p["b"]
@@ -147,7 +169,7 @@ def simulate_two_link_arm(seed: int, payload: np.ndarray, params: dict | None = 
     m1, m2 = p["m"]
     l1, l2 = p["l"]
     k = int(p["n_substeps"])
-    h = dt / k
+    h = p["dt"] / k
     # payload-dependent constants of Eq. (arm-dynamics), one value per frame: (n, Ttot)
     mb = m2 + mp_all
     cb = (m2 * l2 / 2 + mp_all * l2) / mb
@@ -160,10 +182,10 @@ def simulate_two_link_arm(seed: int, payload: np.ndarray, params: dict | None = 
     # nominal (payload-free) gravity constants for the controller's compensation
     g1n = p["gravity_compensation"] * g * (m1 * l1 / 2 + m2 * l1)
     g2n = p["gravity_compensation"] * g * m2 * l2 / 2
-    q1 = ref[:, 0, 0].copy()
-    q2 = ref[:, 0, 1].copy()
-    w1 = np.zeros(n)
-    w2 = np.zeros(n)
+    q1 = state0[:, 0].astype(np.float64, copy=True)
+    q2 = state0[:, 1].astype(np.float64, copy=True)
+    w1 = state0[:, 2].astype(np.float64, copy=True)
+    w2 = state0[:, 3].astype(np.float64, copy=True)
     state = np.empty((n, Ttot, 4))
     torque = np.empty((n, Ttot, 2))
     for t in range(Ttot):
@@ -188,7 +210,4 @@ def simulate_two_link_arm(seed: int, payload: np.ndarray, params: dict | None = 
             w2 = w2 + h * (M11 * r2 - M12 * r1) / det
             q1 = q1 + h * w1
             q2 = q2 + h * w2
-    state = state[:, burn:]
-    obs_noise = np.array([p["q_obs_noise"]] * 2 + [p["qd_obs_noise"]] * 2)
-    obs = state + obs_noise * rng.standard_normal((n, T, 4))
-    return {"obs": obs, "state": state, "torque": torque[:, burn:], "pd_target": ref[:, burn:]}
+    return state, torque
