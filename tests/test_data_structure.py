@@ -20,7 +20,9 @@ from pgm_wm.datasets.hidden_payload_arm import DEFAULT_PARAMS as HIDDEN_PARAMS
 def test_memory_arm_history_still_matters_at_25_and_50_steps():
     r = memory_checks()
     # different pasts, same future actions: still far apart after 1 and 2 s
-    assert r["divergence_1s"] > 0.15 and r["divergence_2s"] > 0.12
+    # (the old hysteresis_arm: 0.54 rad at the start, 0.05 rad after 1 s)
+    assert r["divergence_1s"] > 0.08 and r["divergence_2s"] > 0.08
+    assert r["divergence_2s"] > 0.15 * r["divergence_0s"]
     for h in (25, 50):
         assert r[f"linear_h{h}_long"] < 0.85 * r[f"linear_h{h}_short"], h
         assert r[f"rf_h{h}_long"] < 0.8 * r[f"rf_h{h}_short"], h

@@ -63,7 +63,7 @@ DEFAULT_PARAMS: dict = {
     "play_weights": [0.3, 0.3, 0.3, 0.3, 0.3],
     "creep_taus": [0.3, 3.0],  # s, fast and slow relaxation
     "creep_gain": 1.0,         # a
-    "joint_gain": [1.0, 0.8],  # g_j, rad per unit of H
+    "joint_gain": [0.5, 0.4],  # g_j, rad per unit of H
     "omega_n": 12.0,           # rad/s
     "zeta": 0.4,
     "obs_noise": 0.0005,       # rad
