@@ -24,7 +24,7 @@ import numpy as np
 
 from .two_link_arm import DEFAULT_PARAMS as ARM_PARAMS
 from .two_link_arm import VERSION as ARM_VERSION
-from .two_link_arm import simulate_two_link_arm
+from .two_link_arm import ARM_META, arm_split_arrays
 
 __all__ = ["VERSION", "DEFAULT_PARAMS", "SPLITS", "PAYLOAD_RANGE", "generate"]
 
@@ -51,24 +51,16 @@ def generate(params: dict | None = None) -> tuple[dict[str, np.ndarray], dict]:
     for split, (n, T, seed) in SPLITS.items():
         rng = np.random.default_rng(seed)
         payload = np.repeat(rng.uniform(*PAYLOAD_RANGE, size=n)[:, None], T, axis=1)
-        out = simulate_two_link_arm(seed + 100_000, payload, arm_p)
-        arrays[f"{split}__obs"] = out["obs"].astype(np.float32)
-        arrays[f"{split}__action_options__pd_target"] = out["pd_target"].astype(np.float32)
-        arrays[f"{split}__action_options__torque"] = out["torque"].astype(np.float32)
-        arrays[f"{split}__hidden__payload"] = payload.astype(np.float32)
-        splits_meta[split] = {"n": n, "T": T, "seed": seed, "sim_seed": seed + 100_000,
-                              "payload_range": list(PAYLOAD_RANGE)}
+        split_arrays, splits_meta[split] = arm_split_arrays(split, seed, payload, arm_p)
+        arrays.update(split_arrays)
+        splits_meta[split]["payload_range"] = list(PAYLOAD_RANGE)
     meta = {
         "generator": {"name": "pgm_wm.datasets.two_link_arm.simulate_two_link_arm",
                       "version": f"{VERSION}+arm{ARM_VERSION}", "params": p,
                       "schedule": "constant payload per sequence, U(0, 3) kg"},
         "splits": splits_meta,
         "dt": p["dt"],
-        "units": {"obs": "rad, rad, rad/s, rad/s", "pd_target": "rad", "torque": "N m", "payload": "kg"},
-        "obs_names": ["q1", "q2", "qd1", "qd2"],
-        "action_options": {"pd_target": ["q1_target", "q2_target"], "torque": ["tau1", "tau2"]},
-        "default_action": "pd_target",
-        "target_names": [],
+        **ARM_META,
         "nominal_payload": float(np.mean(PAYLOAD_RANGE)),
         "description": "PD-controlled 2-link arm in the horizontal plane with a hidden tip payload of "
                        "0-3 kg that acts only through inertia: it changes every transient but leaves "

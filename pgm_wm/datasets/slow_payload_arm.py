@@ -26,7 +26,7 @@ import numpy as np
 from .signals import random_steps
 from .two_link_arm import DEFAULT_PARAMS as ARM_PARAMS
 from .two_link_arm import VERSION as ARM_VERSION
-from .two_link_arm import simulate_two_link_arm
+from .two_link_arm import SIM_SEED_OFFSET, simulate_two_link_arm
 
 __all__ = ["VERSION", "DEFAULT_PARAMS", "SPLITS", "pump_actions", "tank_payload", "generate"]
 
@@ -72,11 +72,11 @@ def generate(params: dict | None = None) -> tuple[dict[str, np.ndarray], dict]:
         rng = np.random.default_rng(seed)
         pump = pump_actions(rng, n, T, p)
         _, payload = tank_payload(p["s0_std"] * rng.standard_normal(n), pump, p)
-        out = simulate_two_link_arm(seed + 100_000, payload, arm_p)
+        out = simulate_two_link_arm(seed + SIM_SEED_OFFSET, payload, arm_p)
         arrays[f"{split}__obs"] = out["obs"][..., :2].astype(np.float32)
         arrays[f"{split}__actions"] = np.concatenate([out["pd_target"], pump[..., None]], -1).astype(np.float32)
         arrays[f"{split}__hidden__payload"] = payload.astype(np.float32)
-        splits_meta[split] = {"n": n, "T": T, "seed": seed, "sim_seed": seed + 100_000}
+        splits_meta[split] = {"n": n, "T": T, "seed": seed, "sim_seed": seed + SIM_SEED_OFFSET}
     meta = {
         "generator": {"name": "pgm_wm.datasets.two_link_arm.simulate_two_link_arm",
                       "version": f"{VERSION}+arm{ARM_VERSION}", "params": p,

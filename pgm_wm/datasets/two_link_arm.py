@@ -58,7 +58,22 @@ __all__ = [
     "pd_targets",
     "simulate_two_link_arm",
     "rollout_two_link_arm",
+    "SIM_SEED_OFFSET",
+    "ARM_META",
+    "arm_split_arrays",
 ]
+
+#: The simulation seed of a split is its schedule seed plus this offset.
+SIM_SEED_OFFSET = 100_000
+
+#: Metadata shared by the payload-arm datasets (observations and both action options).
+ARM_META: dict = {
+    "units": {"obs": "rad, rad, rad/s, rad/s", "pd_target": "rad", "torque": "N m", "payload": "kg"},
+    "obs_names": ["q1", "q2", "qd1", "qd2"],
+    "action_options": {"pd_target": ["q1_target", "q2_target"], "torque": ["tau1", "tau2"]},
+    "default_action": "pd_target",
+    "target_names": [],
+}
 
 VERSION = "1.0"
 
@@ -211,3 +226,19 @@ def rollout_two_link_arm(state0: np.ndarray, ref: np.ndarray, noise: np.ndarray,
             q1 = q1 + h * w1
             q2 = q2 + h * w2
     return state, torque
+
+
+def arm_split_arrays(split: str, seed: int, payload: np.ndarray, params: dict) -> tuple[dict[str, np.ndarray], dict]:
+    """Simulate one split for ``payload (n, T)`` and name its arrays as the loader expects.
+
+    Returns ``({"<split>__obs", "<split>__action_options__pd_target", ..._torque,
+    "<split>__hidden__payload"}: float32, split metadata {n, T, seed, sim_seed})``; the
+    simulation seed is ``seed + SIM_SEED_OFFSET``.
+    """
+    out = simulate_two_link_arm(seed + SIM_SEED_OFFSET, payload, params)
+    arrays = {f"{split}__obs": out["obs"].astype(np.float32),
+              f"{split}__action_options__pd_target": out["pd_target"].astype(np.float32),
+              f"{split}__action_options__torque": out["torque"].astype(np.float32),
+              f"{split}__hidden__payload": np.asarray(payload).astype(np.float32)}
+    n, T = payload.shape
+    return arrays, {"n": n, "T": T, "seed": seed, "sim_seed": seed + SIM_SEED_OFFSET}
