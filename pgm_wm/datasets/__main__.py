@@ -9,7 +9,7 @@ from pathlib import Path
 
 from ._io import read_sha256sums, sha256_file
 from .build import build_all
-from .loader import DATASET_NAMES, FILENAMES, data_dir
+from .loader import DATASET_NAMES, FILENAMES, data_dir, restore_command
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -59,9 +59,9 @@ def check(folder: Path) -> int:
         if verdict != "OK":
             bad.append(filename)
     if bad:
-        names = [n for n, f in FILENAMES.items() if f in bad]
-        print(f"{len(bad)} of {len(sums)} files missing or corrupt: {', '.join(bad)}; restore with "
-              f"`python -m pgm_wm.datasets build --only {' '.join(names)}`")
+        print(f"{len(bad)} of {len(sums)} files missing or corrupt: {', '.join(bad)}")
+        for name in (n for n, f in FILENAMES.items() if f in bad):
+            print(f"  restore {FILENAMES[name]} with `{restore_command(name)}`")
         return 1
     print(f"all {len(sums)} files match SHA256SUMS")
     return 0

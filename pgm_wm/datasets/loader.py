@@ -101,9 +101,8 @@ def _check_name_split(name: str, split: str, action: str | None) -> None:
 
 def restore_command(name: str) -> str:
     """The shell command that rewrites the bundled file of dataset ``name``."""
-    if name == "pam_arm":
-        return (f"git checkout -- data/{FILENAMES[name]}` (or `python -m pgm_wm.datasets build --only "
-                f"pam_arm --pam-source <path to pam_arm_subset.npz>`)")
+    if name == "pam_arm":  # real data: rebuilt only from its source (see data/README.md)
+        return f"git checkout -- data/{FILENAMES[name]}"
     return f"python -m pgm_wm.datasets build --only {name}"
 
 
