@@ -19,6 +19,10 @@ Datasets (see ``data/README.md`` for equations, sizes and provenance):
 - ``slow_payload_arm`` (ch. 6): angles only, a pump action fills a tank payload slowly;
 - ``pam_arm`` (ch. 4): real pneumatic-muscle arm, 616 episodes (MIT, Shaj et al. 2020).
 
+Physics oracles for the results tables: :func:`oracle_windows` predicts the evaluation
+windows of a simulated arm with the true simulator from the true state, with the true or the
+nominal payload (:mod:`pgm_wm.datasets.oracles`).
+
 Every file is checked against ``data/SHA256SUMS`` before use (:class:`DataFileError`).
 
 Your own data: ``SequenceData.from_arrays(obs, actions, valid)`` checks and wraps
@@ -30,8 +34,9 @@ Regenerate every file with ``python -m pgm_wm.datasets build``.
 
 from ._io import DataFileError
 from .loader import ACTION_OPTIONS, DATASET_NAMES, SPLITS, SequenceData, data_dir, load
+from .oracles import oracle_windows
 from .pendulum import render_pendulum
 from .sequences import compute_stats, split_sequences
 
 __all__ = ["load", "SequenceData", "compute_stats", "split_sequences", "DATASET_NAMES", "SPLITS", "ACTION_OPTIONS", "render_pendulum", "data_dir",
-           "DataFileError"]
+           "DataFileError", "oracle_windows"]

@@ -24,9 +24,9 @@ import numpy as np
 
 from .two_link_arm import DEFAULT_PARAMS as ARM_PARAMS
 from .two_link_arm import VERSION as ARM_VERSION
-from .two_link_arm import ARM_META, arm_split_arrays
+from .two_link_arm import ARM_META, arm_splits
 
-__all__ = ["VERSION", "DEFAULT_PARAMS", "SPLITS", "PAYLOAD_RANGE", "generate"]
+__all__ = ["VERSION", "DEFAULT_PARAMS", "SPLITS", "PAYLOAD_RANGE", "split_schedule", "generate"]
 
 VERSION = "1.0"
 PAYLOAD_RANGE = (0.0, 3.0)
@@ -42,18 +42,19 @@ SPLITS: dict[str, tuple[int, int, int]] = {
 }
 
 
+def split_schedule(split: str, params: dict | None = None) -> dict[str, np.ndarray]:
+    """``{"payload": (n, T)}`` in kg of one split, drawn from its seed (one value per sequence)."""
+    n, T, seed = SPLITS[split]
+    rng = np.random.default_rng(seed)
+    return {"payload": np.repeat(rng.uniform(*PAYLOAD_RANGE, size=n)[:, None], T, axis=1)}
+
+
 def generate(params: dict | None = None) -> tuple[dict[str, np.ndarray], dict]:
     """All splits as ``({"<split>__<array>": array}, meta)``."""
     p = {**DEFAULT_PARAMS, **(params or {})}
-    arm_p = {key: p[key] for key in ARM_PARAMS}
-    arrays: dict[str, np.ndarray] = {}
-    splits_meta = {}
-    for split, (n, T, seed) in SPLITS.items():
-        rng = np.random.default_rng(seed)
-        payload = np.repeat(rng.uniform(*PAYLOAD_RANGE, size=n)[:, None], T, axis=1)
-        split_arrays, splits_meta[split] = arm_split_arrays(split, seed, payload, arm_p)
-        arrays.update(split_arrays)
-        splits_meta[split]["payload_range"] = list(PAYLOAD_RANGE)
+    arrays, splits_meta = arm_splits({split: seed for split, (_, _, seed) in SPLITS.items()}, split_schedule, p)
+    for info in splits_meta.values():
+        info["payload_range"] = list(PAYLOAD_RANGE)
     meta = {
         "generator": {"name": "pgm_wm.datasets.two_link_arm.simulate_two_link_arm",
                       "version": f"{VERSION}+arm{ARM_VERSION}", "params": p,

@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .signals import lowpass, random_steps, sum_of_sines
+from .signals import drop_burn_in, lowpass, random_steps, sum_of_sines
 
 __all__ = ["VERSION", "DEFAULT_PARAMS", "SPLITS", "memory_actions", "simulate_memory_arm", "generate"]
 
@@ -106,7 +106,8 @@ def rollout_memory_arm(u: np.ndarray, state: dict[str, np.ndarray], params: dict
     """Integrate the module's equations for actions ``u (n, T, 2)`` from ``state``.
 
     Returns ``(record, final_state)``: ``record`` holds ``angle, velocity, pressure,
-    hysteresis (n, T, 2)`` and ``creep (n, T, 2, 2)`` at the start of every frame.
+    hysteresis (n, T, 2)``, ``creep (n, T, 2, 2)`` and ``play (n, T, 2, n_play)`` at the
+    start of every frame (with ``play`` and ``creep`` the full state of :func:`initial_state`).
     """
     p = {**DEFAULT_PARAMS, **(params or {})}
     n, T, _ = u.shape
@@ -123,10 +124,11 @@ def rollout_memory_arm(u: np.ndarray, state: dict[str, np.ndarray], params: dict
     y, c = state["play"].copy(), state["creep"].copy()
     rec = {key: np.empty((n, T, 2)) for key in ("angle", "velocity", "pressure", "hysteresis")}
     rec["creep"] = np.empty((n, T, 2, c.shape[-1]))
+    rec["play"] = np.empty((n, T, 2, y.shape[-1]))
     for t in range(T):
         H = (y * weights).sum(-1)
         rec["angle"][:, t], rec["velocity"][:, t], rec["pressure"][:, t] = th, om, pr
-        rec["hysteresis"][:, t], rec["creep"][:, t] = H, c
+        rec["hysteresis"][:, t], rec["creep"][:, t], rec["play"][:, t] = H, c, y
         v = u[:, t]
         for _ in range(k):
             pr = v + (pr - v) * np.where((v - pr) * pr >= 0.0, decay_fill, decay_vent)
@@ -143,18 +145,15 @@ def rollout_memory_arm(u: np.ndarray, state: dict[str, np.ndarray], params: dict
 def simulate_memory_arm(seed: int, n: int, T: int, params: dict | None = None) -> dict[str, np.ndarray]:
     """``n`` sequences of ``T`` frames after a burn-in; pure function of its arguments.
 
-    Returns float64 ``actions, obs, angle, velocity, pressure, hysteresis (n, T, 2)``
-    and ``creep (n, T, 2, 2)``.
+    Returns float64 ``actions, obs, angle, velocity, pressure, hysteresis (n, T, 2)``,
+    ``creep (n, T, 2, 2)`` and ``play (n, T, 2, n_play)``.
     """
     p = {**DEFAULT_PARAMS, **(params or {})}
     rng = np.random.default_rng(seed)
     burn = int(p["burn_in"])
     u = memory_actions(rng, n, T + burn, p)
     rec, _ = rollout_memory_arm(u, initial_state(n, p), p)
-    out = {key: val[:, burn:] for key, val in rec.items()}
-    out["actions"] = u[:, burn:]
-    out["obs"] = out["angle"] + p["obs_noise"] * rng.standard_normal((n, T, 2))
-    return out
+    return drop_burn_in(rng, rec, u, burn, p["obs_noise"])
 
 
 def generate(params: dict | None = None) -> tuple[dict[str, np.ndarray], dict]:

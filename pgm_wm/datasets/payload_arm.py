@@ -23,11 +23,11 @@ import numpy as np
 
 from .two_link_arm import DEFAULT_PARAMS as ARM_PARAMS
 from .two_link_arm import VERSION as ARM_VERSION
-from .two_link_arm import ARM_META, arm_split_arrays
+from .two_link_arm import ARM_META, arm_splits
 
 __all__ = [
     "VERSION", "DEFAULT_PARAMS", "SPLITS", "TRAIN_PAYLOAD_RANGES", "sample_train_payloads",
-    "payload_schedule", "generate",
+    "payload_schedule", "split_schedule", "generate",
 ]
 
 VERSION = "1.0"
@@ -80,17 +80,18 @@ def payload_schedule(
     raise ValueError(f"kind: expected 'constant' or 'switching', got {kind!r}")
 
 
+def split_schedule(split: str, params: dict | None = None) -> dict[str, np.ndarray]:
+    """``{"payload": (n, T)}`` in kg of one split, drawn from its seed (:func:`payload_schedule`)."""
+    p = {**DEFAULT_PARAMS, **(params or {})}
+    n, T, seed, kind, value_range = SPLITS[split]
+    return {"payload": payload_schedule(np.random.default_rng(seed), n, T, kind, value_range, p)}
+
+
 def generate(params: dict | None = None) -> tuple[dict[str, np.ndarray], dict]:
     """All splits as ``({"<split>__<array>": array}, meta)``."""
     p = {**DEFAULT_PARAMS, **(params or {})}
-    arm_p = {key: p[key] for key in ARM_PARAMS}
-    arrays: dict[str, np.ndarray] = {}
-    splits_meta = {}
-    for split, (n, T, seed, kind, value_range) in SPLITS.items():
-        rng = np.random.default_rng(seed)
-        payload = payload_schedule(rng, n, T, kind, value_range, p)
-        split_arrays, splits_meta[split] = arm_split_arrays(split, seed, payload, arm_p)
-        arrays.update(split_arrays)
+    arrays, splits_meta = arm_splits({split: spec[2] for split, spec in SPLITS.items()}, split_schedule, p)
+    for split, (_, _, _, kind, value_range) in SPLITS.items():
         splits_meta[split].update({"payload_schedule": kind,
                                    "payload_range": value_range if value_range is not None
                                    else [list(r) for r in TRAIN_PAYLOAD_RANGES]})

@@ -28,7 +28,7 @@ from .two_link_arm import DEFAULT_PARAMS as ARM_PARAMS
 from .two_link_arm import VERSION as ARM_VERSION
 from .two_link_arm import SIM_SEED_OFFSET, simulate_two_link_arm
 
-__all__ = ["VERSION", "DEFAULT_PARAMS", "SPLITS", "pump_actions", "tank_payload", "generate"]
+__all__ = ["VERSION", "DEFAULT_PARAMS", "SPLITS", "pump_actions", "tank_payload", "split_schedule", "generate"]
 
 VERSION = "1.0"
 
@@ -62,6 +62,16 @@ def tank_payload(s0: np.ndarray, pump: np.ndarray, p: dict) -> tuple[np.ndarray,
     return s, p["payload_max"] / (1.0 + np.exp(-s))
 
 
+def split_schedule(split: str, params: dict | None = None) -> dict[str, np.ndarray]:
+    """``{"pump": (n, T), "payload": (n, T)}`` of one split, drawn from its seed (:func:`tank_payload`)."""
+    p = {**DEFAULT_PARAMS, **(params or {})}
+    n, T, seed = SPLITS[split]
+    rng = np.random.default_rng(seed)
+    pump = pump_actions(rng, n, T, p)
+    _, payload = tank_payload(p["s0_std"] * rng.standard_normal(n), pump, p)
+    return {"pump": pump, "payload": payload}
+
+
 def generate(params: dict | None = None) -> tuple[dict[str, np.ndarray], dict]:
     """All splits as ``({"<split>__<array>": array}, meta)``."""
     p = {**DEFAULT_PARAMS, **(params or {})}
@@ -69,9 +79,8 @@ def generate(params: dict | None = None) -> tuple[dict[str, np.ndarray], dict]:
     arrays: dict[str, np.ndarray] = {}
     splits_meta = {}
     for split, (n, T, seed) in SPLITS.items():
-        rng = np.random.default_rng(seed)
-        pump = pump_actions(rng, n, T, p)
-        _, payload = tank_payload(p["s0_std"] * rng.standard_normal(n), pump, p)
+        sched = split_schedule(split, p)
+        pump, payload = sched["pump"], sched["payload"]
         out = simulate_two_link_arm(seed + SIM_SEED_OFFSET, payload, arm_p)
         arrays[f"{split}__obs"] = out["obs"][..., :2].astype(np.float32)
         arrays[f"{split}__actions"] = np.concatenate([out["pd_target"], pump[..., None]], -1).astype(np.float32)

@@ -47,6 +47,8 @@ rad; the closed loop is stable, so long open-loop predictions are feasible).
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from .signals import lowpass, ou_process, random_steps
@@ -61,6 +63,7 @@ __all__ = [
     "SIM_SEED_OFFSET",
     "ARM_META",
     "arm_split_arrays",
+    "arm_splits",
 ]
 
 #: The simulation seed of a split is its schedule seed plus this offset.
@@ -139,8 +142,9 @@ def simulate_two_link_arm(seed: int, payload: np.ndarray, params: dict | None = 
     ``(t+1) dt``); a burn-in of ``burn_in_s`` seconds with the first payload
     value is simulated and dropped. Returns float64 arrays ``obs (n, T, 4)``
     (noisy ``q1, q2, qd1, qd2``), ``state (n, T, 4)`` (noise-free),
-    ``torque (n, T, 2)`` and ``pd_target (n, T, 2)``; ``torque[:, t]`` and
-    ``pd_target[:, t]`` act between frames ``t`` and ``t+1``.
+    ``torque (n, T, 2)``, ``pd_target (n, T, 2)`` and ``torque_noise (n, T, 2)`` (the OU
+    noise xi_t inside ``torque``); ``torque[:, t]`` and ``pd_target[:, t]`` act
+    between frames ``t`` and ``t+1``.
     """
     p = {**DEFAULT_PARAMS, **(params or {})}
     payload = np.asarray(payload, dtype=np.float64)
@@ -161,7 +165,8 @@ def simulate_two_link_arm(seed: int, payload: np.ndarray, params: dict | None = 
     state = state[:, burn:]
     obs_noise = np.array([p["q_obs_noise"]] * 2 + [p["qd_obs_noise"]] * 2)
     obs = state + obs_noise * rng.standard_normal((n, T, 4))
-    return {"obs": obs, "state": state, "torque": torque[:, burn:], "pd_target": ref[:, burn:]}
+    return {"obs": obs, "state": state, "torque": torque[:, burn:], "pd_target": ref[:, burn:],
+            "torque_noise": noise[:, burn:]}
 
 
 def rollout_two_link_arm(state0: np.ndarray, ref: np.ndarray, noise: np.ndarray, payload: np.ndarray,
@@ -242,3 +247,20 @@ def arm_split_arrays(split: str, seed: int, payload: np.ndarray, params: dict) -
               f"{split}__hidden__payload": np.asarray(payload).astype(np.float32)}
     n, T = payload.shape
     return arrays, {"n": n, "T": T, "seed": seed, "sim_seed": seed + SIM_SEED_OFFSET}
+
+
+def arm_splits(seeds: dict[str, int], schedule: Callable[[str, dict], dict[str, np.ndarray]], params: dict
+               ) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
+    """All splits of a payload-arm dataset: :func:`arm_split_arrays` of ``schedule(split, params)["payload"]``.
+
+    ``seeds``: ``{split: schedule seed}`` in file order; ``params``: the dataset's parameters
+    (the arm's entries of :data:`DEFAULT_PARAMS` are passed to the simulator). Returns
+    ``(arrays, {split: split metadata})``.
+    """
+    arm_p = {key: params[key] for key in DEFAULT_PARAMS}
+    arrays: dict[str, np.ndarray] = {}
+    splits_meta: dict[str, dict] = {}
+    for split, seed in seeds.items():
+        split_arrays, splits_meta[split] = arm_split_arrays(split, seed, schedule(split, params)["payload"], arm_p)
+        arrays.update(split_arrays)
+    return arrays, splits_meta
