@@ -36,8 +36,9 @@ def test_checksums_match_committed_files():
 
 
 def test_total_size_is_small():
-    total = sum((data_dir() / loader_mod.FILENAMES[n]).stat().st_size for n in DATASET_NAMES)
-    assert total < 15e6
+    sizes = {n: (data_dir() / loader_mod.FILENAMES[n]).stat().st_size for n in DATASET_NAMES}
+    assert max(sizes.values()) < 4e6, sizes
+    assert sum(sizes.values()) < 22e6
 
 
 @pytest.mark.parametrize("name", sorted(GENERATORS))

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from ._io import read_sha256sums, sha256_file
 from .build import build_all
-from .loader import DATASET_NAMES, FILENAMES, data_dir
+from .loader import DATASET_NAMES, FILENAMES, data_dir, restore_command
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -23,15 +23,16 @@ def main(argv: list[str] | None = None) -> int:
                    help="pam_arm_subset.npz to convert (default: $PGM_WM_PAM_SOURCE or shared/data/)")
     c = sub.add_parser("check", help="verify the files against SHA256SUMS")
     c.add_argument("--dir", default=None, help="data folder (default: $PGM_WM_DATA or <repo>/data)")
-    sub.add_parser("report", help="print the linear checks of pgm_wm.datasets.diagnostics")
+    sub.add_parser("report", help="print the checks of pgm_wm.datasets.diagnostics and .structure")
     args = parser.parse_args(argv)
     if args.command == "build":
         build_all(args.only, args.out, pam_source=args.pam_source)
         return 0
     if args.command == "report":
-        from .diagnostics import report
+        from . import diagnostics, structure
 
-        report()
+        diagnostics.report()
+        structure.report()
         return 0
     return check(Path(data_dir() if args.dir is None else args.dir))
 
@@ -58,9 +59,9 @@ def check(folder: Path) -> int:
         if verdict != "OK":
             bad.append(filename)
     if bad:
-        names = [n for n, f in FILENAMES.items() if f in bad]
-        print(f"{len(bad)} of {len(sums)} files missing or corrupt: {', '.join(bad)}; restore with "
-              f"`python -m pgm_wm.datasets build --only {' '.join(names)}`")
+        print(f"{len(bad)} of {len(sums)} files missing or corrupt: {', '.join(bad)}")
+        for name in (n for n, f in FILENAMES.items() if f in bad):
+            print(f"  restore {FILENAMES[name]} with `{restore_command(name)}`")
         return 1
     print(f"all {len(sums)} files match SHA256SUMS")
     return 0

@@ -15,7 +15,8 @@ from typing import Callable
 
 import numpy as np
 
-from . import drift_arm, hysteresis_arm, nile, pam_arm, payload_arm, pendulum, tracking
+from . import (drift_arm, hidden_payload_arm, hysteresis_arm, memory_arm, nile, pam_arm, payload_arm, pendulum,
+               slow_payload_arm, tracking)
 from ._io import write_npz, write_sha256sums
 from .loader import DATASET_NAMES, FILENAMES, data_dir
 
@@ -29,6 +30,9 @@ GENERATORS: dict[str, Callable[[], tuple[dict[str, np.ndarray], dict]]] = {
     "hysteresis_arm": hysteresis_arm.generate,
     "payload_arm": payload_arm.generate,
     "drift_arm": drift_arm.generate,
+    "memory_arm": memory_arm.generate,
+    "hidden_payload_arm": hidden_payload_arm.generate,
+    "slow_payload_arm": slow_payload_arm.generate,
 }
 
 

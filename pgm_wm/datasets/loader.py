@@ -41,6 +41,7 @@ __all__ = ["DATASET_NAMES", "SPLITS", "ACTION_OPTIONS", "SequenceData", "load", 
 
 DATASET_NAMES: tuple[str, ...] = (
     "nile", "tracking", "pendulum", "hysteresis_arm", "payload_arm", "drift_arm", "pam_arm",
+    "memory_arm", "hidden_payload_arm", "slow_payload_arm",
 )
 
 SPLITS: dict[str, tuple[str, ...]] = {
@@ -51,6 +52,9 @@ SPLITS: dict[str, tuple[str, ...]] = {
     "payload_arm": ("train", "valid", "test", "interp", "extrap", "switching"),
     "drift_arm": ("train", "valid", "test"),
     "pam_arm": ("train", "valid", "test"),
+    "memory_arm": ("train", "valid", "test"),
+    "hidden_payload_arm": ("train", "valid", "test"),
+    "slow_payload_arm": ("train", "valid", "test"),
 }
 
 #: Real data: rebuilt from a source file outside the repository, not by a generator.
@@ -60,6 +64,7 @@ ACTION_OPTIONS: dict[str, tuple[str, ...]] = {
     "payload_arm": ("pd_target", "torque"),
     "drift_arm": ("pd_target", "torque"),
     "pam_arm": ("command", "increment"),
+    "hidden_payload_arm": ("pd_target", "torque"),
 }
 
 FILENAMES: dict[str, str] = {name: f"{name}.npz" for name in DATASET_NAMES}
@@ -96,9 +101,8 @@ def _check_name_split(name: str, split: str, action: str | None) -> None:
 
 def restore_command(name: str) -> str:
     """The shell command that rewrites the bundled file of dataset ``name``."""
-    if name == "pam_arm":
-        return (f"git checkout -- data/{FILENAMES[name]}` (or `python -m pgm_wm.datasets build --only "
-                f"pam_arm --pam-source <path to pam_arm_subset.npz>`)")
+    if name == "pam_arm":  # real data: rebuilt only from its source (see data/README.md)
+        return f"git checkout -- data/{FILENAMES[name]}"
     return f"python -m pgm_wm.datasets build --only {name}"
 
 
