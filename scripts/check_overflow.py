@@ -144,6 +144,12 @@ MEASURE_JS = r"""
     rep.progress = article.querySelectorAll(
       ".widget-progress, progress, .jupyter-widgets .progress").length;
     rep.page_overflow = Math.max(0, document.documentElement.scrollWidth - window.innerWidth);
+    try { await document.fonts.ready; } catch (e) {}
+    var errs = (window.__pgmErrors || []).slice();
+    document.fonts.forEach(function (f) {
+      if (f.status === "error") errs.push("font failed to load: " + f.family);
+    });
+    rep.console = errs.map(function (m) { return String(m).slice(0, 200); });
     var pre = document.createElement("pre");
     pre.id = "pgm-overflow-report";
     pre.style.display = "none";
@@ -155,6 +161,27 @@ MEASURE_JS = r"""
 })();
 </script>
 """
+
+# Installed first thing in <head>: records script errors, failed resource loads and
+# console.error calls from the page's own scripts (headless Chromium does not reliably log
+# the console to stderr).
+EARLY_JS = r"""<script>window.__pgmErrors = [];
+(function () {
+  var E = window.__pgmErrors;
+  window.addEventListener("error", function (e) {
+    var t = e.target;
+    if (t && t !== window && (t.src || t.href)) E.push("failed to load " + (t.src || t.href));
+    else E.push("script error: " + (e.message || ""));
+  }, true);
+  window.addEventListener("unhandledrejection", function (e) {
+    E.push("unhandled rejection: " + ((e.reason && e.reason.message) || e.reason));
+  });
+  var ce = console.error;
+  console.error = function () {
+    E.push("console.error: " + Array.prototype.join.call(arguments, " "));
+    return ce.apply(console, arguments);
+  };
+})();</script>"""
 
 CONSOLE = re.compile(r'CONSOLE\(\d+\)\] "(?P<msg>.*)", source: (?P<src>\S*)')
 
@@ -227,6 +254,7 @@ def measure_page(chromium: str, build_dir: Path, page: Path, width: int,
     text = page.read_text(encoding="utf-8", errors="replace")
     probe_html = text.replace("</body>", MEASURE_JS + "</body>") if "</body>" in text \
         else text + MEASURE_JS
+    probe_html = re.sub(r"(<head[^>]*>)", lambda m: m.group(1) + EARLY_JS, probe_html, count=1)
     # The copy sits next to the page so that every relative link resolves the same way.
     fd, probe_name = tempfile.mkstemp(prefix=".overflow-", suffix=".html", dir=page.parent)
     with tempfile.TemporaryDirectory(prefix="pgm-chromium-") as profile:
@@ -247,6 +275,8 @@ def measure_page(chromium: str, build_dir: Path, page: Path, width: int,
         result.error = "no report (page did not finish loading?)"
     else:
         result.report = json.loads(html.unescape(match.group(1)))
+        result.console += [m.replace(Path(probe_name).name, Path(rel).name)
+                           for m in result.report.pop("console", [])]
     for line in proc.stderr.splitlines():
         m = CONSOLE.search(line)
         if m:
@@ -266,6 +296,9 @@ def list_pages(build_dir: Path, pattern: str | None) -> list[Path]:
         if rel.startswith(("_static/", "_sources/", "_modules/", "_images/")):
             continue
         if pattern and not fnmatch.fnmatch(rel, pattern):
+            continue
+        head = path.read_text(encoding="utf-8", errors="replace")[:2000].lower()
+        if 'http-equiv="refresh"' in head:   # a redirect (the root index.html)
             continue
         pages.append(path)
     return pages

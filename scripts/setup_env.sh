@@ -8,6 +8,7 @@
 # Environment variables:
 #   PYTHON            interpreter used to create .venv (default: python3)
 #   PGM_WM_REINSTALL  set to 1 to force the pip install step
+#   PGM_WM_SETUP_VERBOSE  set to 1 to list every missing or mismatched package
 
 set -euo pipefail
 
@@ -15,9 +16,34 @@ REPO_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$REPO_ROOT"
 VENV="$REPO_ROOT/.venv"
 
+# The pins in requirements.txt are verified on Python 3.11 (README). Check the interpreter
+# before creating anything, with a message that says what to do.
+check_python() {
+    "$1" - <<'PY'
+import sys
+major, minor = sys.version_info[:2]
+if (major, minor) < (3, 10):
+    print(f"[setup] ERROR: {sys.executable} is Python {major}.{minor}; pgm_wm needs Python 3.11 "
+          "(3.10 or newer). Install Python 3.11 and run again with PYTHON=/path/to/python3.11",
+          file=sys.stderr)
+    sys.exit(1)
+if (major, minor) != (3, 11):
+    print(f"[setup] note: Python {major}.{minor}; the pinned versions are tested on 3.11 "
+          "(set PYTHON=/path/to/python3.11 to use it)", file=sys.stderr)
+PY
+}
+
 if [ ! -x "$VENV/bin/python" ]; then
-    echo "[setup] creating virtual environment in .venv with ${PYTHON:-python3}"
-    "${PYTHON:-python3}" -m venv "$VENV"
+    py="${PYTHON:-python3}"
+    if ! command -v "$py" >/dev/null 2>&1; then
+        echo "[setup] ERROR: '$py' not found; install Python 3.11 or set PYTHON=/path/to/python3.11" >&2
+        exit 1
+    fi
+    check_python "$py"
+    echo "[setup] creating virtual environment in .venv with $("$py" --version 2>&1)"
+    "$py" -m venv "$VENV"
+else
+    check_python "$VENV/bin/python"
 fi
 
 # Exit status 0 iff every 'name==version' pin in requirements.txt is installed and
@@ -54,8 +80,16 @@ try:
         problems.append(f"pgm_wm is imported from {pgm_wm.__file__}, not from {here}")
 except ImportError:
     problems.append("pgm_wm not installed")
-for problem in problems:
-    print(f"[setup] {problem}")
+# One line instead of one per package (PGM_WM_SETUP_VERBOSE=1 lists them all).
+if problems:
+    import os
+
+    missing = sum(p.endswith("not installed") for p in problems)
+    if os.environ.get("PGM_WM_SETUP_VERBOSE") == "1" or len(problems) <= 3:
+        detail = "; ".join(problems)
+    else:
+        detail = f"{missing} not installed, {len(problems) - missing} at another version"
+    print(f"[setup] .venv needs updating ({detail})")
 sys.exit(1 if problems else 0)
 PY
 }
@@ -63,11 +97,17 @@ PY
 if [ "${PGM_WM_REINSTALL:-0}" != "1" ] && env_is_current; then
     echo "[setup] .venv is up to date"
 else
-    echo "[setup] installing requirements.txt and pgm_wm (editable) into .venv"
-    "$VENV/bin/python" -m pip install --quiet -r requirements.txt
-    "$VENV/bin/python" -m pip install --quiet -e . --no-deps
-    "$VENV/bin/python" -m pip check
+    n_pins=$(grep -cE '^[A-Za-z0-9_.-]+==' requirements.txt)
+    echo "[setup] installing $n_pins pinned packages (torch CPU, Jupyter Book, JupyterLab, ...;" \
+         "a few hundred MB) and pgm_wm into .venv: about 2-5 minutes on a first run, seconds" \
+         "when only a pin changed"
+    setup_start=$(date +%s)
+    "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check -r requirements.txt
+    "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check -e . --no-deps
+    "$VENV/bin/python" -m pip check --disable-pip-version-check >/dev/null \
+        || { "$VENV/bin/python" -m pip check; exit 1; }
     env_is_current
+    echo "[setup] done in $(( $(date +%s) - setup_start ))s"
 fi
 
 # Activate: put the venv's tools (jupyter-book, pytest, the python3 kernel) first on PATH.

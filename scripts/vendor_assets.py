@@ -9,7 +9,8 @@ puts two things next to the sources, where ``_config.yml`` serves them as static
   it loads at run time: input, output incl. the CHTML web fonts, ui, a11y, adaptors,
   sre) taken from the installed ``django-static-mathjax`` package (MathJax 3.2.2).
 * ``_vendor/widgets/``: the Jupyter widgets HTML manager (``embed-amd.js``) and
-  RequireJS, unpacked from ``book/_vendor_js/`` (committed, checksummed).
+  RequireJS, unpacked from ``book/_vendor_js/`` (committed, checksummed), plus the three
+  Font Awesome web fonts its CSS asks for (copied from the installed pydata-sphinx-theme).
 
 The folder is *not* ``_static/``: Jupyter Book 1 injects every ``.js``/``.css`` found in
 ``_static`` into every page.
@@ -49,6 +50,17 @@ WIDGET_FILES = (
         "require.js",
         "8215b90000b571bd241d28512c83f59855cecc3158db94b79b2d974c9923b5d2",
     ),
+)
+# The widget manager's CSS asks for Font Awesome 5 web fonts by content-hashed names next
+# to embed-amd.js (webpack public path = the script's folder); the npm tarball ships them,
+# the two vendored files do not, so the browser logged three 404s on every page with a
+# widget. We serve the Font Awesome web fonts that pydata-sphinx-theme already ships (same
+# glyph code points for the icons the built-in widgets use) under those names.
+# (hashed name expected by embed-amd.js, Font Awesome file in the theme)
+WIDGET_FONTS = (
+    ("d878b0a6a1144760244f.woff2", "fa-brands-400.woff2"),
+    ("7a3337626410ca2f4071.woff2", "fa-regular-400.woff2"),
+    ("1551f4f60c37af51121f.woff2", "fa-solid-900.woff2"),
 )
 WIDGET_LICENCES = (
     "LICENSE.jupyter-widgets.txt",
@@ -99,6 +111,18 @@ def copy_mathjax(dest: Path) -> int:
     return sum(p.stat().st_size for p in dest.rglob("*") if p.is_file())
 
 
+def theme_fontawesome_dir() -> Path:
+    """The Font Awesome web fonts shipped with the installed pydata-sphinx-theme."""
+    spec = importlib.util.find_spec("pydata_sphinx_theme")
+    if spec is None or not spec.submodule_search_locations:
+        fail("pydata-sphinx-theme is not installed; run `pip install -r requirements.txt`")
+    base = Path(list(spec.submodule_search_locations)[0])
+    for candidate in base.rglob("fa-solid-900.woff2"):
+        return candidate.parent
+    fail(f"no Font Awesome web fonts found under {base}")
+    raise AssertionError  # unreachable
+
+
 def copy_widgets(dest: Path) -> int:
     if dest.exists():
         shutil.rmtree(dest)
@@ -116,6 +140,9 @@ def copy_widgets(dest: Path) -> int:
         (dest / target_name).write_bytes(data)
     for name in WIDGET_LICENCES:
         shutil.copy2(VENDOR_JS / name, dest / name)
+    fonts = theme_fontawesome_dir()
+    for target_name, source_name in WIDGET_FONTS:
+        shutil.copy2(fonts / source_name, dest / target_name)
     return sum(p.stat().st_size for p in dest.rglob("*") if p.is_file())
 
 
