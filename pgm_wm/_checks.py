@@ -155,3 +155,21 @@ def check_same_batch(names: Sequence[str], tensors: Sequence[Tensor], n_event_di
     except RuntimeError as err:
         desc = ", ".join(f"{n}: {tuple(t.shape)}" for n, t in zip(names, tensors))
         raise ValueError(f"{names[0]}: batch dimensions do not broadcast ({desc})") from err
+
+
+# ----------------------------------------------------------------------------- masking observations
+__all__ += ["mask_observations"]
+
+
+def mask_observations(obs: Tensor, mask: Tensor | None) -> Tensor:
+    """``obs: (..., d)`` with every entry whose ``mask: (...)`` is False replaced by 0.
+
+    The one way the package hides an observation from a model: ``torch.where`` (not a product),
+    so a NaN or inf stored at a missing step cannot reach the model's arithmetic or its
+    gradients. ``mask=None`` returns ``obs`` unchanged. The mask must have the leading shape of
+    ``obs`` (bool or 0/1).
+    """
+    if mask is None:
+        return obs
+    mask = check_mask("mask", mask, tuple(obs.shape[:-1]))
+    return torch.where(mask[..., None], obs, torch.zeros((), dtype=obs.dtype, device=obs.device))

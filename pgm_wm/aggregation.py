@@ -48,7 +48,7 @@ from torch import Tensor, nn
 
 from ._checks import as_tensor, check_last_dims, check_mask, check_positive, check_tensor
 from .factorized import FactorizedBelief, block_inverse
-from .layers import mlp
+from .layers import mlp, positive_variance
 
 __all__ = [
     "bayesian_aggregation",
@@ -279,18 +279,6 @@ def masked_max_pool(h: Tensor, mask: Tensor | None = None) -> Tensor:
 
 
 # ----------------------------------------------------------------------------- learned modules
-def positive_variance(raw: Tensor, min_var: float) -> Tensor:
-    r"""Map an unconstrained network output to a variance: :math:`\mathrm{softplus}(x) + v_{min}`.
-
-    Why this activation: softplus is smooth and strictly positive and grows only linearly for
-    large inputs (``exp`` would overflow and make the precision :math:`1/\sigma` vanish
-    exponentially fast, which kills gradients); the floor ``min_var`` bounds every element's
-    precision by :math:`1/v_{min}`, so no single element can take all the weight or produce a
-    division by zero in Eq. (ba-update).
-    """
-    return F.softplus(raw) + min_var
-
-
 class SetEncoder(nn.Module):
     r"""Per-element encoder :math:`x_n \mapsto (r_n, \sigma_n)`: a shared MLP trunk with two linear
     heads, ``enc_r`` (the latent observation) and ``enc_var`` (its variance,

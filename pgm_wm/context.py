@@ -10,18 +10,16 @@ Gaussian belief over the parameter and is trained by the Gaussian negative log-l
   (:func:`normalized_transition_features` for a dataset split, normalized with training stats);
 * :class:`ContextSetSampler` draws batches of padded sets of random size (``mask`` marks
   the present elements), optionally corrupting a random fraction of the elements;
-* :func:`set_nll`, :func:`fit_set_model`, :func:`evaluate_set_model`: loss, training loop
-  with validation-based model selection, and metrics.
+* :func:`set_nll`, :func:`fit_set_model`, :func:`evaluate_set_model`: loss, training (the
+  package's :func:`pgm_wm.training.fit` with validation-based model selection), and metrics.
 
 The HiP-RSSM chapter reuses the sampler idea with the context taken from the recent past.
 """
 
 from __future__ import annotations
 
-import copy
 import math
-import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -29,6 +27,7 @@ from torch import Tensor, nn
 
 from ._checks import check_last_dims, check_tensor
 from .metrics import gaussian_nll
+from .training import FitHistory, fit
 
 __all__ = [
     "transition_features",
@@ -39,7 +38,6 @@ __all__ = [
     "set_nll",
     "fit_set_model",
     "evaluate_set_model",
-    "FitResult",
 ]
 
 
@@ -229,17 +227,6 @@ def set_nll(y: Tensor, mean: Tensor, var: Tensor) -> Tensor:
     return gaussian_nll(mean, var, y, dim=-1) * y.shape[-1]
 
 
-@dataclass
-class FitResult:
-    """Outcome of :func:`fit_set_model`: training losses, validation NLLs, chosen step, seconds."""
-
-    train_loss: list[float] = field(default_factory=list)
-    valid_steps: list[int] = field(default_factory=list)
-    valid_nll: list[float] = field(default_factory=list)
-    best_step: int = 0
-    seconds: float = 0.0
-
-
 def fit_set_model(
     model: nn.Module,
     sampler: ContextSetSampler,
@@ -255,44 +242,41 @@ def fit_set_model(
     eval_every: int = 50,
     clip: float = 5.0,
     seed: int = 0,
-) -> FitResult:
-    r"""Train ``model(x, mask) -> (mean, var)`` by the Gaussian NLL of the set's target.
+    *,
+    budget_s: float | None = None,
+    patience: int | None = None,
+    progress: bool | None = False,
+) -> FitHistory:
+    r"""Train ``model(x, mask) -> (mean, var)`` by the Gaussian NLL of the set's target, Eq. (ba-nll).
 
     Each step draws ``batch_size`` sets with sizes uniform on ``{n_min..n_max}``. A fraction
     ``corrupt_prob`` of the sets is corrupted (:func:`corrupt_elements`): each of their elements
     with probability ``U(0, corrupt_frac_max)`` gets Gaussian noise of scale
-    ``U(0, corrupt_scale_max)`` (per element). Adam, gradient-norm clipping at ``clip``.
-    Every ``eval_every`` steps the validation NLL on the fixed batch ``valid`` is recorded; the
-    weights of the best validation step are restored at the end (model selection on the
-    validation split only).
+    ``U(0, corrupt_scale_max)`` (per element). The loop is :func:`pgm_wm.training.fit` with this
+    sampler: one "epoch" is ``eval_every`` steps, after which the validation NLL on the fixed
+    batch ``valid`` is recorded; the weights of the best validation epoch are restored (model
+    selection on the validation split only). ``steps`` caps the number of steps (rounded up to
+    whole epochs), ``budget_s`` (CPU seconds) and ``patience`` (epochs) stop earlier. The optimizer
+    step of each epoch's end is ``history.steps``.
     """
-    gen = torch.Generator().manual_seed(seed)
-    opt = torch.optim.Adam(model.parameters(), lr=lr)
-    out = FitResult()
-    best_nll, best_state = float("inf"), copy.deepcopy(model.state_dict())
-    t0 = time.perf_counter()
-    for step in range(1, steps + 1):
+    if not isinstance(eval_every, int) or eval_every <= 0:
+        raise ValueError(f"eval_every: must be a positive int, got {eval_every!r}")
+    if not isinstance(steps, int) or steps <= 0:
+        raise ValueError(f"steps: must be a positive int, got {steps!r}")
+
+    def sample(gen: torch.Generator) -> ContextBatch:
         hit = torch.rand(batch_size, generator=gen) < corrupt_prob
         frac = torch.where(hit, torch.rand(batch_size, generator=gen) * corrupt_frac_max, torch.zeros(batch_size))
         scale = torch.rand(batch_size, n_max, generator=gen) * corrupt_scale_max
-        batch = sampler.sample(batch_size, n_max, n_min, gen, frac, scale)
+        return sampler.sample(batch_size, n_max, n_min, gen, frac, scale)
+
+    def loss_fn(batch: ContextBatch, gen: torch.Generator) -> Tensor:
         mean, var = model(batch.x, batch.mask)
-        loss = set_nll(batch.y, mean, var).mean()
-        opt.zero_grad()
-        loss.backward()
-        nn.utils.clip_grad_norm_(model.parameters(), clip)
-        opt.step()
-        out.train_loss.append(float(loss.detach()))
-        if step % eval_every == 0 or step == steps:
-            nll = evaluate_set_model(model, valid)["nll"]
-            out.valid_steps.append(step)
-            out.valid_nll.append(nll)
-            if nll < best_nll:
-                best_nll, out.best_step = nll, step
-                best_state = copy.deepcopy(model.state_dict())
-    model.load_state_dict(best_state)
-    out.seconds = time.perf_counter() - t0
-    return out
+        return set_nll(batch.y, mean, var).mean()
+
+    return fit(loss_fn, model, sample, batch_size, epochs=-(-steps // eval_every), lr=lr, clip_norm=clip, seed=seed,
+               valid_fn=lambda: evaluate_set_model(model, valid)["nll"], progress=progress,
+               max_batches=eval_every, desc="fit_set_model", budget_s=budget_s, patience=patience)
 
 
 @torch.no_grad()

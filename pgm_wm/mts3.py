@@ -52,8 +52,8 @@ would correlate :math:`z` and :math:`l`. The slow level, not the fast one, learn
 :math:`C_i` (one more cause in Eq. mts3-task-predict), and is updated with the abstract
 observations of its window. With no task level it is the ac-RKN; with one it is :class:`MTS3`.
 
-Training uses imputation at both scales: :func:`window_imputation_mask` hides single steps and
-whole windows. :func:`evaluate_open_loop` gives long-horizon predictions after a context and
+Training uses imputation at both scales: :func:`pgm_wm.training.observation_mask` hides single steps and
+whole windows. :func:`pgm_wm.evaluation.evaluate_open_loop` gives long-horizon predictions after a context and
 their sliding-window metrics (:mod:`pgm_wm.metrics`).
 
 Implementation notes. The slow levels never look at the fast beliefs, so :class:`MTS3` first
@@ -76,14 +76,11 @@ from ._checks import check_last_dims
 from .acrkn import AcRKN, LinearControl, MLPControl, ZeroControl, check_sequences
 from .aggregation import BayesianContextEncoder, SetEncoder, set_condition
 from .factorized import FactorizedBelief, factorized_predict, linear_cause
-from .metrics import denormalize, denormalize_var, sliding_window_nll, sliding_window_rmse
 from .rkn import BeliefDecoder, FilterOutput, LocallyLinearTransition, ObservationEncoder, band_mask
-from .training import multistep_predict, prediction_loss
+from .datasets.windows import pad_to_windows, to_windows
 
 __all__ = [
     "time_encoding",
-    "to_windows",
-    "pad_to_windows",
     "BlockMatrix",
     "set_block_init",
     "decouple_halves",
@@ -96,10 +93,6 @@ __all__ = [
     "MTS3",
     "HierarchicalOutput",
     "HierarchicalMTS3",
-    "window_imputation_mask",
-    "window_imputation_loss_fn",
-    "OpenLoopResult",
-    "evaluate_open_loop",
     "build_fast_acrkn",
     "build_mts3",
     "build_hierarchical_mts3",
@@ -112,28 +105,6 @@ def time_encoding(window: int, like: Tensor) -> Tensor:
     if window <= 0:
         raise ValueError(f"window: must be positive, got {window}")
     return (torch.arange(window, dtype=like.dtype, device=like.device) / window).unsqueeze(-1)
-
-
-def pad_to_windows(x: Tensor, window: int, name: str = "x") -> Tensor:
-    """Pad the time axis (axis 1) of ``x: (B, T, ...)`` with zeros to a multiple of ``window``."""
-    if x.ndim < 2:
-        raise ValueError(f"{name}: expected (B, T, ...), got shape {tuple(x.shape)}")
-    if window <= 0:
-        raise ValueError(f"window: must be positive, got {window}")
-    T = x.shape[1]
-    pad = (-T) % window
-    if pad == 0:
-        return x
-    return torch.cat([x, x.new_zeros(x.shape[0], pad, *x.shape[2:])], dim=1)
-
-
-def to_windows(x: Tensor, window: int, name: str = "x") -> Tensor:
-    """Reshape ``x: (B, T, ...)`` with ``T = K * window`` to ``(B, K, window, ...)``."""
-    if x.ndim < 2:
-        raise ValueError(f"{name}: expected (B, T, ...), got shape {tuple(x.shape)}")
-    if window <= 0 or x.shape[1] % window:
-        raise ValueError(f"{name}: time length {x.shape[1]} is not a multiple of window={window}")
-    return x.reshape(x.shape[0], x.shape[1] // window, window, *x.shape[2:])
 
 
 def _with_time(x: Tensor) -> Tensor:
@@ -772,119 +743,6 @@ class HierarchicalMTS3(nn.Module):
     def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
         out = self.run(obs, actions, mask)
         return out.mean, out.var
-
-
-# ----------------------------------------------------------------------------- imputation training
-def window_imputation_mask(
-    shape: Sequence[int],
-    window: int,
-    step_keep_prob: float,
-    window_drop_prob: float,
-    context_windows: int = 1,
-    generator: torch.Generator | None = None,
-    device: torch.device | str | None = None,
-    open_loop_prob: float = 0.0,
-) -> Tensor:
-    """Observation mask ``(B, T)`` (True = observed) for imputation at both time scales.
-
-    Every step is kept with probability ``step_keep_prob`` and, independently, every whole window
-    of ``window`` steps is dropped with probability ``window_drop_prob``; the first
-    ``context_windows`` windows are always fully observed. With probability ``open_loop_prob`` a
-    sequence instead hides *everything* after its context windows (pure open-loop prediction, as
-    at evaluation time). Resample it for every batch.
-    """
-    if len(shape) != 2 or any(int(s) <= 0 for s in shape):
-        raise ValueError(f"shape: expected (B, T) with positive sizes, got {tuple(shape)}")
-    if window <= 0:
-        raise ValueError(f"window: must be positive, got {window}")
-    if not 0.0 <= step_keep_prob <= 1.0:
-        raise ValueError(f"step_keep_prob: must be in [0, 1], got {step_keep_prob}")
-    if not 0.0 <= window_drop_prob <= 1.0:
-        raise ValueError(f"window_drop_prob: must be in [0, 1], got {window_drop_prob}")
-    if not 0.0 <= open_loop_prob <= 1.0:
-        raise ValueError(f"open_loop_prob: must be in [0, 1], got {open_loop_prob}")
-    if context_windows < 0:
-        raise ValueError(f"context_windows: must be >= 0, got {context_windows}")
-    B, T = int(shape[0]), int(shape[1])
-    K = -(-T // window)
-    steps = torch.rand(B, T, generator=generator) < step_keep_prob
-    windows = torch.rand(B, K, generator=generator) >= window_drop_prob
-    open_loop = torch.rand(B, 1, generator=generator) < open_loop_prob
-    windows = windows & ~open_loop
-    mask = steps & windows.repeat_interleave(window, dim=1)[:, :T]
-    mask[:, : min(context_windows * window, T)] = True
-    return mask.to(device) if device is not None else mask
-
-
-def window_imputation_loss_fn(
-    model: Callable[..., tuple[Tensor, Tensor]],
-    window: int,
-    step_keep_prob: float = 0.85,
-    max_window_drop: float = 0.75,
-    context_windows: int = 1,
-    loss: str = "nll",
-    open_loop_prob: float = 0.0,
-) -> Callable[[tuple[Tensor, ...], torch.Generator], Tensor]:
-    """A ``loss_fn`` for :func:`pgm_wm.training.fit` on batches ``(obs, actions)``: per batch it
-    draws a window-drop probability uniformly in ``[0, max_window_drop]``, a fresh
-    :func:`window_imputation_mask` (with ``open_loop_prob``), and returns
-    :func:`pgm_wm.training.prediction_loss` (all next-step targets count, observed or not).
-    Works for any world model with the interface ``model(obs, actions, mask)``."""
-    if not 0.0 <= max_window_drop <= 1.0:
-        raise ValueError(f"max_window_drop: must be in [0, 1], got {max_window_drop}")
-
-    def loss_fn(batch: tuple[Tensor, ...], gen: torch.Generator) -> Tensor:
-        obs, actions = batch[0], batch[1]
-        p = float(torch.rand((), generator=gen)) * max_window_drop
-        mask = window_imputation_mask(obs.shape[:2], window, step_keep_prob, p, context_windows, gen,
-                                      device=obs.device, open_loop_prob=open_loop_prob)
-        return prediction_loss(model, obs, actions, mask, None, loss)
-
-    return loss_fn
-
-
-# ----------------------------------------------------------------------------- long-horizon evaluation
-@dataclass(frozen=True)
-class OpenLoopResult:
-    """Open-loop predictions in original units and their sliding-window metrics.
-
-    Attributes:
-        mean, var, target: ``(B, horizon, do)``; index ``k - 1`` is the ``k``-step-ahead prediction.
-        rmse, nll: ``(horizon,)``, Eq. (metric-sliding-rmse) / Eq. (metric-sliding-nll).
-    """
-
-    mean: Tensor
-    var: Tensor
-    target: Tensor
-    rmse: Tensor
-    nll: Tensor
-
-
-@torch.no_grad()
-def evaluate_open_loop(model: Callable[..., tuple[Tensor, Tensor]], obs: Tensor, actions: Tensor, context_len: int,
-                       obs_mean: Tensor, obs_std: Tensor, metric_window: int) -> OpenLoopResult:
-    """Long-horizon evaluation: the model sees the first ``context_len`` (normalized) observations of
-    each segment ``obs: (B, S, do)`` and all actions, and predicts the remaining ``S - context_len``
-    observations open-loop (:func:`pgm_wm.training.multistep_predict`: later observations are never
-    passed to it). Predictions are mapped back to original units with the *training* statistics
-    ``obs_mean, obs_std`` before the sliding-window RMSE and NLL (window ``metric_window``).
-
-    A model whose open-loop predictions diverge (a non-finite mean, or a variance that is not a
-    positive finite number) gets ``inf`` for both metrics at every horizon whose window contains
-    such a prediction, instead of an error."""
-    mean, var = multistep_predict(model, obs, actions, context_len)
-    target = obs[:, context_len:]
-    m = denormalize(mean, obs_mean, obs_std)
-    v = denormalize_var(var, obs_std)
-    y = denormalize(target, obs_mean, obs_std)
-    ok = torch.isfinite(m) & torch.isfinite(v) & (v > 0)
-    m_safe, v_safe = torch.where(ok, m, y), torch.where(ok, v, torch.ones_like(v))
-    bad = (~ok).flatten(2).any(-1).any(0).to(m.dtype)  # (horizon,): any diverged entry at that step
-    bad = torch.cat([bad.new_zeros(metric_window - 1), bad]).unfold(0, metric_window, 1).amax(-1) > 0
-    inf = torch.tensor(float("inf"), dtype=m.dtype, device=m.device)
-    rmse_t = torch.where(bad, inf, sliding_window_rmse(m_safe, y, metric_window))
-    nll_t = torch.where(bad, inf, sliding_window_nll(m_safe, v_safe, y, metric_window))
-    return OpenLoopResult(m, v, y, rmse_t, nll_t)
 
 
 # ----------------------------------------------------------------------------- builders

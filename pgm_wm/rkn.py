@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ._checks import check_last_dims, check_mask, check_tensor
-from .layers import mlp
+from .layers import elup1, mlp
 from .factorized import FactorizedBelief, factorized_predict_from_matrix, factorized_update
 
 __all__ = [
@@ -47,16 +47,6 @@ __all__ = [
 ]
 
 CausesFn = Callable[[int, FactorizedBelief], Sequence[FactorizedBelief]]
-
-
-def elup1(x: Tensor) -> Tensor:
-    """``elu(x) + 1``: a smooth map onto :math:`(0, \\infty)` used for all learned variances.
-
-    It equals ``x + 1`` for ``x > 0`` and ``exp(x)`` for ``x <= 0``. We evaluate the second branch
-    as ``exp(x)`` directly: written as ``elu(x) + 1 = (exp(x) - 1) + 1`` it cancels to exactly 0 in
-    float32 once ``x < -16.6``, and a zero variance breaks the likelihood.
-    """
-    return torch.where(x > 0, x + 1.0, torch.exp(x.clamp(max=0.0)))
 
 
 def band_mask(m: int, bandwidth: int) -> Tensor:

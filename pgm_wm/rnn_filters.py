@@ -1,4 +1,4 @@
-r"""Recurrent-network filters: the LSTM / GRU baselines of Chapter 3, and a small fit loop.
+r"""Recurrent-network filters: the LSTM / GRU baselines of Chapter 3, and how to fit a filter.
 
 A :class:`RecurrentFilter` sees exactly what the RKN sees: the encoder's latent observation
 :math:`w_t` and its variance :math:`\sigma^{obs}_t` (Eq. rkn-encoder), with missing frames
@@ -22,13 +22,13 @@ from typing import Sequence
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_last_dims, check_mask, check_tensor
+from ._checks import check_mask, check_tensor, mask_observations
+from .layers import GaussianHead
 from .metrics import gaussian_nll, rmse
-from .rkn import elup1, mlp
-from .training import FitHistory, fit, imputation_mask
+from .training import FitHistory, fit, imputation_loss_fn
 
 __all__ = [
-    "GaussianHead",
+    "GaussianHead",  # re-exported from pgm_wm.layers
     "RecurrentFilter",
     "recurrent_hidden_for_budget",
     "count_parameters",
@@ -37,34 +37,6 @@ __all__ = [
     "predict_filter",
     "evaluate_filter",
 ]
-
-class GaussianHead(nn.Module):
-    r"""Decoder of a deterministic hidden state: ``h -> (mean, var)``, ``var = elu(·) + 1``.
-
-    The counterpart of :class:`pgm_wm.rkn.BeliefDecoder` for a recurrent network; both use two
-    MLPs with the same hidden sizes, so the baselines and the RKN share their decoder shape.
-    """
-
-    def __init__(
-        self,
-        in_dim: int,
-        out_dim: int,
-        hidden: Sequence[int] = (64,),
-        var_hidden: Sequence[int] = (64,),
-        activation: type[nn.Module] = nn.ReLU,
-    ) -> None:
-        super().__init__()
-        if in_dim <= 0 or out_dim <= 0:
-            raise ValueError(f"out_dim: need in_dim > 0 and out_dim > 0, got {in_dim}, {out_dim}")
-        self.in_dim, self.out_dim = in_dim, out_dim
-        self.mean_net = mlp(in_dim, hidden, out_dim, activation)
-        self.var_net = mlp(in_dim, var_hidden, out_dim, activation)
-
-    def forward(self, h: Tensor) -> tuple[Tensor, Tensor]:
-        """``h: (..., in_dim)`` -> ``(mean, var)`` each ``(..., out_dim)``."""
-        check_last_dims("h", h, (self.in_dim,))
-        return self.mean_net(h), elup1(self.var_net(h))
-
 
 class RecurrentFilter(nn.Module):
     """LSTM or GRU filter over the encoder's ``(w, w_var)`` with the same masking as the RKN.
@@ -122,7 +94,7 @@ class RecurrentFilter(nn.Module):
         check_tensor("obs", obs, 3)
         if mask is not None:
             mask = check_mask("mask", mask, tuple(obs.shape[:2]))
-            obs = torch.where(mask[..., None], obs, torch.zeros((), dtype=obs.dtype, device=obs.device))
+            obs = mask_observations(obs, mask)
         w, w_var = self.encoder(obs)
         return self.decoder(self.filter(w, w_var, mask))
 
@@ -215,6 +187,9 @@ def fit_filter(
     drop_prob: float = 0.0,
     gap_prob: float = 0.0,
     context_steps: int = 5,
+    *,
+    budget_s: float | None = None,
+    patience: int | None = None,
 ) -> FitHistory:
     """Train ``model(obs, mask) -> (mean, var)`` on the Gaussian NLL of the targets (Eq. metric-nll).
 
@@ -225,7 +200,8 @@ def fit_filter(
 
     Frame dropout (training only): with ``drop_prob`` each frame after the first
     ``context_steps`` of a window is additionally hidden, and with ``gap_prob`` a window also
-    loses every frame after a random cut (:func:`pgm_wm.training.imputation_mask`). The targets
+    loses every frame after a random cut (:func:`pgm_wm.training.observation_mask`); ``budget_s`` (CPU seconds)
+    and ``patience`` are passed to :func:`pgm_wm.training.fit`. The targets
     stay, so the model must predict through the gaps; the loss covers all steps.
     """
     T = train.obs.shape[1]
@@ -233,16 +209,8 @@ def fit_filter(
         raise ValueError(f"crop: must be in [1, {T}], got {crop}")
     if not 0.0 <= drop_prob < 1.0 or not 0.0 <= gap_prob <= 1.0:
         raise ValueError(f"drop_prob: need 0 <= drop_prob < 1 and 0 <= gap_prob <= 1, got {drop_prob}, {gap_prob}")
-    augment = drop_prob > 0 or gap_prob > 0
-
-    def loss_fn(batch: tuple[Tensor, ...], gen: torch.Generator) -> Tensor:
-        obs, mask, targets = batch
-        if augment:
-            mask = mask & imputation_mask(tuple(mask.shape), 1.0 - drop_prob, context_steps, gen,
-                                          device=mask.device, open_loop_prob=gap_prob)
-        mean, var = model(obs, mask)
-        return gaussian_nll(mean, var, targets)
-
+    loss_fn = imputation_loss_fn(model, 1.0 - drop_prob, context_steps, "nll", gap_prob, filtering=True)
     return fit(loss_fn, model, (train.obs, train.mask, train.targets), batch_size=batch_size,
                epochs=epochs, lr=lr, clip_norm=clip, seed=seed, progress=progress, crop_len=crop,
-               valid_fn=lambda: evaluate_filter(model, valid)["nll"], keep_best=True, desc="fit_filter")
+               valid_fn=lambda: evaluate_filter(model, valid)["nll"], keep_best=True, desc="fit_filter",
+               budget_s=budget_s, patience=patience)

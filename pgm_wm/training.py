@@ -1,27 +1,32 @@
-r"""Training and evaluation utilities shared by the model chapters (3-6).
+r"""Training: seeding, observation masks, the one loss factory and the one fit loop.
 
 * :func:`set_seed` — seed Python, numpy and torch; returns a seeded ``torch.Generator``.
-* :func:`imputation_mask` — random observation masks for self-supervised multi-step training:
-  each observation is kept with probability ``keep_prob``, the first ``context_steps`` always.
-* :func:`fit` — a generic minibatch loop: Adam, gradient-norm clipping, seeded shuffling,
-  optional random time crops, ``tqdm`` progress, per-epoch training loss / validation metric,
-  optionally keeps the parameters of the best validation epoch.
-* :func:`prediction_loss` / :func:`imputation_loss_fn` — the next-observation loss for any
-  model with the world-model interface ``model(obs, actions, mask) -> (mean, var)`` whose index
-  ``t`` predicts :math:`o_{t+1}` (:class:`pgm_wm.acrkn.AcRKN` and :mod:`pgm_wm.baselines`).
-* :func:`multistep_predict` — give a model a context of observations and predict open-loop from
-  the actions alone; no observation after the context is passed to the model at all.
-* :func:`multistep_metrics` — RMSE and NLL per prediction horizon over sliding windows.
-* :func:`sliding_windows` — cut long sequences into (overlapping) evaluation windows.
+* :func:`observation_mask` — the one random observation-mask generator (True = observed): a
+  per-step keep probability, always-kept context steps, whole-window drops and open-loop cuts.
+  Imputation training (Chapters 4–6) and the seeded evaluation masks of Chapter 5 are all
+  special cases.
+* :func:`prediction_loss` — the next-observation loss of any world model
+  ``model(obs, actions, mask) -> (mean, var)`` whose index ``t`` predicts :math:`o_{t+1}`
+  (or, for a filter ``model(obs, mask)``, the loss against per-step targets).
+* :func:`imputation_loss_fn` — the one loss factory: "draw an :func:`observation_mask`, call
+  :func:`prediction_loss`", for every chapter's batches.
+* :func:`floor_variance` — wrap a model so its predictive variances are at least ``min_var``.
+* :func:`fit` — the one minibatch loop: seeded, Adam with gradient-norm clipping, a compute
+  budget in CPU seconds and/or an epoch cap, early stopping with patience and keep-best on a
+  *validation* loss, and a hard stop (``ValueError``) at the first non-finite loss or gradient.
+
+Multi-step / open-loop evaluation lives in :mod:`pgm_wm.evaluation`.
 """
 
 from __future__ import annotations
 
 import copy
+import math
+import os
 import random
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 import torch
@@ -33,16 +38,18 @@ from .metrics import gaussian_nll, rmse
 
 __all__ = [
     "set_seed",
-    "imputation_mask",
+    "observation_mask",
     "random_crop",
     "FitHistory",
     "fit",
+    "show_progress",
     "prediction_loss",
+    "floor_variance",
     "imputation_loss_fn",
-    "multistep_predict",
-    "multistep_metrics",
-    "sliding_windows",
 ]
+
+WorldModel = Callable[..., tuple[Tensor, Tensor]]
+LossFn = Callable[[Any, torch.Generator], Tensor]
 
 
 def set_seed(seed: int) -> torch.Generator:
@@ -55,42 +62,73 @@ def set_seed(seed: int) -> torch.Generator:
     return torch.Generator().manual_seed(int(seed))
 
 
-def imputation_mask(
+# ============================================================================= masks
+def _check_prob(name: str, p: float) -> None:
+    if not (isinstance(p, (int, float)) and 0.0 <= p <= 1.0):
+        raise ValueError(f"{name}: must be in [0, 1], got {p!r}")
+
+
+def observation_mask(
     shape: Sequence[int],
-    keep_prob: float,
+    keep_prob: float = 1.0,
     context_steps: int = 0,
+    *,
+    window: int | None = None,
+    window_drop_prob: float = 0.0,
+    open_loop_prob: float = 0.0,
+    open_loop_start: int | None = None,
     generator: torch.Generator | None = None,
     device: torch.device | str | None = None,
-    open_loop_prob: float = 0.0,
 ) -> Tensor:
-    """Random observation mask ``(B, T)`` (True = observed) for imputation training.
+    r"""Random observation mask ``(B, T)``, True = the model may see the observation.
 
-    Every entry is kept independently with probability ``keep_prob``; the first ``context_steps``
-    steps of every sequence are always kept. With probability ``open_loop_prob`` a sequence
-    additionally loses *every* observation after a cut point drawn uniformly from
-    ``[context_steps, T)``, so that long open-loop stretches (as in multi-step evaluation) are
-    seen in training. Resample it for every batch.
+    Built in four steps, each optional:
+
+    1. every step is kept independently with probability ``keep_prob``;
+    2. with ``window`` = :math:`H`, every whole window of :math:`H` steps is dropped with
+       probability ``window_drop_prob`` (imputation at the slow time scale, Chapter 6);
+    3. with probability ``open_loop_prob`` a sequence loses *every* observation from a cut on
+       (open-loop prediction from the actions alone): the cut is ``open_loop_start`` if given,
+       otherwise uniform in ``[context_steps, T)``;
+    4. the first ``context_steps`` steps are always kept.
+
+    Special cases: imputation training (``keep_prob``, ``context_steps``, ``open_loop_prob``);
+    window imputation (``window``, ``window_drop_prob``, ``context_steps = H``,
+    ``open_loop_start = H``); the fixed evaluation masks of Chapter 5 (a seeded ``generator``,
+    ``open_loop_prob=1``, ``open_loop_start = c``). Resample it for every batch.
     """
     if len(shape) != 2 or any(int(s) <= 0 for s in shape):
         raise ValueError(f"shape: expected (B, T) with positive sizes, got {tuple(shape)}")
-    if not 0.0 <= keep_prob <= 1.0:
-        raise ValueError(f"keep_prob: must be in [0, 1], got {keep_prob}")
-    if context_steps < 0:
-        raise ValueError(f"context_steps: must be >= 0, got {context_steps}")
-    if not 0.0 <= open_loop_prob <= 1.0:
-        raise ValueError(f"open_loop_prob: must be in [0, 1], got {open_loop_prob}")
+    _check_prob("keep_prob", keep_prob)
+    _check_prob("window_drop_prob", window_drop_prob)
+    _check_prob("open_loop_prob", open_loop_prob)
+    if not isinstance(context_steps, int) or context_steps < 0:
+        raise ValueError(f"context_steps: must be an int >= 0, got {context_steps!r}")
+    if window is not None and (not isinstance(window, int) or window <= 0):
+        raise ValueError(f"window: must be a positive int or None, got {window!r}")
+    if window is None and window_drop_prob > 0:
+        raise ValueError("window_drop_prob: needs window")
     B, T = int(shape[0]), int(shape[1])
+    if open_loop_start is not None and not (isinstance(open_loop_start, int) and 0 <= open_loop_start <= T):
+        raise ValueError(f"open_loop_start: must be an int in [0, {T}] or None, got {open_loop_start!r}")
     mask = torch.rand(B, T, generator=generator) < keep_prob
-    if open_loop_prob > 0 and context_steps < T:
-        cut = torch.randint(context_steps, T, (B,), generator=generator)
+    if window is not None and window_drop_prob > 0:
+        n_win = -(-T // window)
+        kept = torch.rand(B, n_win, generator=generator) >= window_drop_prob
+        mask &= kept.repeat_interleave(window, dim=1)[:, :T]
+    if open_loop_prob > 0:
+        if open_loop_start is None:
+            lo = min(context_steps, T - 1)
+            cut = torch.randint(lo, T, (B,), generator=generator)
+        else:
+            cut = torch.full((B,), open_loop_start, dtype=torch.long)
         tail = torch.rand(B, generator=generator) < open_loop_prob
-        after = torch.arange(T)[None, :] >= cut[:, None]
-        mask &= ~(after & tail[:, None])
+        mask &= ~((torch.arange(T)[None, :] >= cut[:, None]) & tail[:, None])
     mask[:, : min(context_steps, T)] = True
     return mask.to(device) if device is not None else mask
 
 
-def _time_tensors(tensors: Sequence[Tensor]) -> tuple[int, list[bool]]:
+def _time_tensors(tensors: Sequence[Tensor]) -> tuple[int | None, list[bool]]:
     T = tensors[0].shape[1] if tensors[0].ndim >= 2 else None
     flags = [T is not None and t.ndim >= 2 and t.shape[1] == T for t in tensors]
     return T, flags
@@ -117,269 +155,357 @@ def random_crop(tensors: Sequence[Tensor], crop_len: int, generator: torch.Gener
     return tuple(t[rows, idx] if f else t for t, f in zip(tensors, flags))
 
 
+# ============================================================================= losses
+def prediction_loss(
+    model: WorldModel,
+    obs: Tensor,
+    actions: Tensor | None,
+    mask: Tensor | None = None,
+    valid: Tensor | None = None,
+    loss: str = "nll",
+    *,
+    targets: Tensor | None = None,
+    extra: Sequence[Any] = (),
+) -> Tensor:
+    r"""The loss of a model's predictions, Eq. (metric-nll) / Eq. (metric-rmse).
+
+    World model (``targets=None``): ``model(obs, actions, mask, *extra) -> (mean, var)``; outputs
+    at ``t = 0..T-2`` are scored against ``obs[:, 1:]``. Filter (``actions=None`` and
+    ``targets: (B, T, k)``): ``model(obs, mask, *extra)``; output ``t`` is scored against
+    ``targets[:, t]``. ``loss="nll"``: :func:`pgm_wm.metrics.gaussian_nll`; ``"mse"``: mean squared
+    error of the mean; ``"rmse"``: its square root. ``valid: (B, T)`` marks real (non-padding)
+    steps; a target counts if it is valid. All targets count, observed or not, so with an
+    imputation mask this trains multi-step prediction. Observations at valid steps must be finite.
+    """
+    check_tensor("obs", obs, 3)
+    if loss not in ("nll", "mse", "rmse"):
+        raise ValueError(f"loss: expected 'nll', 'mse' or 'rmse', got {loss!r}")
+    v = None if valid is None else check_mask("valid", valid, tuple(obs.shape[:2]))
+    bad = ~torch.isfinite(obs.detach())
+    if bool((bad if v is None else bad & v[..., None]).any()):
+        raise ValueError("obs: contains NaN or infinite values at valid steps")
+    if targets is None:
+        if obs.shape[1] < 2:
+            raise ValueError(f"obs: need at least 2 time steps, got {obs.shape[1]}")
+        if actions is None:
+            raise ValueError("actions: a world model needs actions (give targets for a filter)")
+        mean, var = model(obs, actions, mask, *extra)
+        mean, var, target = mean[:, :-1], var[:, :-1], obs[:, 1:]
+        w = None if v is None else v[:, 1:]
+    else:
+        check_tensor("targets", targets, 3)
+        if tuple(targets.shape[:2]) != tuple(obs.shape[:2]):
+            raise ValueError(f"targets: expected leading shape {tuple(obs.shape[:2])}, got {tuple(targets.shape)}")
+        mean, var = model(obs, mask, *extra) if actions is None else model(obs, actions, mask, *extra)
+        target, w = targets, v
+    if loss == "nll":
+        return gaussian_nll(mean, var, target, w)
+    r = rmse(mean, target, w)
+    return r if loss == "rmse" else r * r
+
+
+def floor_variance(model: WorldModel, min_var: float = 1e-8) -> WorldModel:
+    r"""Wrap a model so that its predictive variances are at least ``min_var``.
+
+    Why: NLL training drives the variances of almost deterministic dimensions (angle differences
+    given the velocity) towards 0, and one tiny variance makes the NLL explode. The floor (with
+    zero gradient below it) acts only on those entries. ``wrapped(*args, **kw) -> (mean,
+    var.clamp_min(min_var))``.
+    """
+    if not min_var > 0:
+        raise ValueError(f"min_var: must be positive, got {min_var}")
+
+    def wrapped(*args: Any, **kwargs: Any) -> tuple[Tensor, Tensor]:
+        mean, var = model(*args, **kwargs)
+        return mean, var.clamp_min(min_var)
+
+    return wrapped
+
+
+def imputation_loss_fn(
+    model: WorldModel,
+    keep_prob: float = 0.25,
+    context_steps: int = 5,
+    loss: str = "nll",
+    open_loop_prob: float = 0.0,
+    *,
+    window: int | None = None,
+    max_window_drop: float = 0.0,
+    open_loop_start: int | None = None,
+    min_var: float | None = None,
+    filtering: bool = False,
+) -> LossFn:
+    r"""The one loss factory: a ``loss_fn(batch, generator)`` for :func:`fit` that draws a fresh
+    :func:`observation_mask` per batch and returns :func:`prediction_loss`.
+
+    Batches: a world model gets ``(obs, actions[, valid[, *extra]])`` (``extra``, e.g. the
+    context set and its mask of a :class:`pgm_wm.hiprssm.HiPRSSM` window, is passed to the model
+    after the mask); with ``filtering=True`` a filter ``model(obs, mask)`` gets ``(obs, valid,
+    targets)``. The drawn mask is ANDed with ``valid``. With ``window``, each batch first draws a
+    window-drop probability uniformly in ``[0, max_window_drop]`` (Chapter 6's two-scale
+    imputation). ``min_var`` floors the predicted variances (:func:`floor_variance`).
+    """
+    _check_prob("keep_prob", keep_prob)
+    _check_prob("max_window_drop", max_window_drop)
+    _check_prob("open_loop_prob", open_loop_prob)
+    if window is None and max_window_drop > 0:
+        raise ValueError("max_window_drop: needs window")
+    fn = model if min_var is None else floor_variance(model, min_var)
+
+    def loss_fn(batch: Sequence[Tensor], gen: torch.Generator) -> Tensor:
+        if filtering:
+            obs, valid, targets = batch
+            actions, extra = None, ()
+        else:
+            obs, actions = batch[0], batch[1]
+            valid = batch[2] if len(batch) > 2 else None
+            extra, targets = tuple(batch[3:]), None
+        drop = float(torch.rand((), generator=gen)) * max_window_drop if max_window_drop > 0 else 0.0
+        mask = observation_mask(obs.shape[:2], keep_prob, context_steps, window=window, window_drop_prob=drop,
+                                open_loop_prob=open_loop_prob, open_loop_start=open_loop_start, generator=gen,
+                                device=obs.device)
+        if valid is not None:
+            mask = mask & valid.bool()
+        return prediction_loss(fn, obs, actions, mask, None if filtering else valid, loss,
+                               targets=targets, extra=extra)
+
+    return loss_fn
+
+
+# ============================================================================= the fit loop
+def show_progress(progress: bool | None) -> bool:
+    """Whether to draw a progress bar: ``progress`` if given, else unless the environment variable
+    ``PGM_WM_PROGRESS`` is ``0`` (the book build sets it so rendered pages show no widgets)."""
+    if progress is None:
+        return os.environ.get("PGM_WM_PROGRESS", "1").strip() != "0"
+    return bool(progress)
+
+
 @dataclass
 class FitHistory:
-    """What :func:`fit` recorded: one entry per epoch, plus the total wall time (s)."""
+    """What :func:`fit` recorded, one entry per epoch (the last may be a partial epoch).
+
+    Attributes:
+        train_loss: mean training loss of the epoch's batches.
+        valid_loss: the validation loss after the epoch (empty without ``valid_fn``).
+        steps: optimizer steps done by the end of each epoch.
+        epoch_time: wall seconds of each epoch.
+        best_epoch: index of the epoch with the lowest validation loss (``None`` without one).
+        cpu_time / wall_time: CPU seconds (``time.process_time``) and wall seconds in total.
+        stopped: why the loop ended: ``"epochs"``, ``"budget"`` or ``"patience"``.
+    """
 
     train_loss: list[float] = field(default_factory=list)
-    valid_metric: list[float] = field(default_factory=list)
+    valid_loss: list[float] = field(default_factory=list)
+    steps: list[int] = field(default_factory=list)
     epoch_time: list[float] = field(default_factory=list)
-    wall_time: float = 0.0
     best_epoch: int | None = None
+    cpu_time: float = 0.0
+    wall_time: float = 0.0
+    stopped: str = "epochs"
+
+    @property
+    def epochs(self) -> int:
+        """Number of (possibly partial) epochs run."""
+        return len(self.train_loss)
+
+    @property
+    def valid_metric(self) -> list[float]:
+        """The name :attr:`valid_loss` had before the loops were merged (kept for old call sites)."""
+        return self.valid_loss
+
+    @property
+    def best_valid_loss(self) -> float:
+        return min(self.valid_loss) if self.valid_loss else float("nan")
 
     @property
     def final_train_loss(self) -> float:
         return self.train_loss[-1] if self.train_loss else float("nan")
 
 
+def _batch_indices(batch: Any, idx: Tensor | None) -> list[int] | None:
+    if idx is not None:
+        return [int(i) for i in idx]
+    seq = getattr(batch, "seq", None)
+    return [int(i) for i in seq] if isinstance(seq, Tensor) else None
+
+
 def fit(
-    loss_fn: Callable[[tuple[Tensor, ...], torch.Generator], Tensor],
+    loss_fn: LossFn,
     params_or_model: nn.Module | Iterable[nn.Parameter],
-    train_tensors: Sequence[Tensor],
+    train_tensors: Sequence[Tensor] | Callable[[torch.Generator], Any],
     batch_size: int,
-    epochs: int,
+    epochs: int | None = None,
     lr: float = 3e-3,
     clip_norm: float | None = 5.0,
     seed: int = 0,
     valid_fn: Callable[[], float] | None = None,
-    progress: bool = True,
+    progress: bool | None = None,
     crop_len: int | None = None,
     weight_decay: float = 0.0,
     max_batches: int | None = None,
-    keep_best: bool = False,
+    keep_best: bool | None = None,
     desc: str = "train",
+    *,
+    budget_s: float | None = None,
+    patience: int | None = None,
 ) -> FitHistory:
-    """Minimize ``loss_fn`` with Adam over minibatches of ``train_tensors``.
+    """Minimize ``loss_fn`` with Adam over minibatches; the package's only training loop.
 
     Args:
-        loss_fn: ``loss_fn(batch, generator) -> scalar`` where ``batch`` is the tuple of the
-            minibatch slices of ``train_tensors`` (after cropping) and ``generator`` a seeded
-            ``torch.Generator`` for any randomness of the loss (e.g. :func:`imputation_mask`).
-        params_or_model: an ``nn.Module`` (put in train mode while fitting, eval mode for
-            ``valid_fn``) or an iterable of parameters.
-        train_tensors: tensors sharing the first (sequence) axis.
-        batch_size, epochs, lr, weight_decay: the usual; ``clip_norm`` clips the global gradient
-            norm (``None``: no clipping).
+        loss_fn: ``loss_fn(batch, generator) -> scalar``; ``batch`` is the tuple of minibatch
+            slices of ``train_tensors`` (after cropping), ``generator`` a seeded
+            ``torch.Generator`` for the loss' own randomness (e.g. :func:`imputation_loss_fn`).
+        params_or_model: an ``nn.Module`` (train mode while fitting, eval mode for ``valid_fn``
+            and at the end) or an iterable of parameters.
+        train_tensors: tensors sharing the first (sequence) axis, shuffled each epoch; or a
+            sampler ``sample(generator) -> batch`` (e.g. random context sets), called
+            ``max_batches`` times per epoch.
+        batch_size, lr, weight_decay: the usual; ``clip_norm`` clips the global gradient norm
+            (``None``: no clipping).
+        epochs: an epoch cap; ``budget_s``: a compute budget in **CPU seconds**
+            (``time.process_time``, checked after every batch; the epoch in progress ends there).
+            At least one of the two is required. An epoch cap alone is reproducible; a budget
+            is not across machines.
         seed: seeds the shuffling, the crops and the generator passed to ``loss_fn``.
-        valid_fn: called after every epoch under ``torch.no_grad()``; returns a float (lower is
-            better) that is recorded in ``valid_metric``.
-        crop_len: if given, every minibatch is cut to a random window of ``crop_len`` steps
-            (:func:`random_crop`), which speeds up recurrent models a lot.
-        max_batches: stop an epoch after this many minibatches (for quick runs).
-        keep_best: with ``valid_fn`` and a module, restore the parameters of the best epoch.
+        valid_fn: called after every epoch under ``torch.no_grad()``; returns the validation
+            loss (lower is better). Pass a *validation* split, never the test split.
+        patience: stop when the validation loss has not improved for this many epochs.
+        keep_best: restore the parameters of the epoch with the best validation loss (default:
+            whenever ``valid_fn`` is given).
+        crop_len: cut every minibatch to a random window of ``crop_len`` steps (:func:`random_crop`).
+        max_batches: at most this many minibatches per epoch.
+        progress: a ``tqdm`` bar (:func:`show_progress`).
+
+    Raises ``ValueError`` naming the epoch, the batch and its sequence indices at the first
+    non-finite loss or gradient norm (the parameters are then those before that step).
     """
-    if not train_tensors:
-        raise ValueError("train_tensors: need at least one tensor")
-    n = train_tensors[0].shape[0]
-    for i, t in enumerate(train_tensors):
-        if not isinstance(t, Tensor) or t.shape[0] != n:
-            raise ValueError(f"train_tensors: tensor {i} must be a Tensor with {n} rows")
-    if batch_size <= 0 or epochs < 0:
-        raise ValueError(f"batch_size: need batch_size > 0 and epochs >= 0, got {batch_size}, {epochs}")
-    if lr <= 0:
+    sampler = callable(train_tensors) and not isinstance(train_tensors, (list, tuple))
+    if sampler:
+        if max_batches is None or max_batches <= 0:
+            raise ValueError("max_batches: a sampler needs a positive number of batches per epoch")
+        n = 0
+    else:
+        if not train_tensors:
+            raise ValueError("train_tensors: need at least one tensor")
+        n = train_tensors[0].shape[0]
+        for i, t in enumerate(train_tensors):
+            if not isinstance(t, Tensor) or t.shape[0] != n:
+                raise ValueError(f"train_tensors: tensor {i} must be a Tensor with {n} rows")
+    if not isinstance(batch_size, int) or batch_size <= 0:
+        raise ValueError(f"batch_size: must be a positive int, got {batch_size!r}")
+    if epochs is None and budget_s is None:
+        raise ValueError("epochs: give an epoch cap, a CPU-second budget_s, or both")
+    if epochs is not None and (not isinstance(epochs, int) or epochs < 0):
+        raise ValueError(f"epochs: must be an int >= 0 or None, got {epochs!r}")
+    if budget_s is not None and not budget_s > 0:
+        raise ValueError(f"budget_s: must be positive or None, got {budget_s!r}")
+    if not lr > 0:
         raise ValueError(f"lr: must be positive, got {lr}")
-    if clip_norm is not None and clip_norm <= 0:
+    if clip_norm is not None and not clip_norm > 0:
         raise ValueError(f"clip_norm: must be positive or None, got {clip_norm}")
-    if keep_best and (valid_fn is None or not isinstance(params_or_model, nn.Module)):
-        raise ValueError("keep_best: needs valid_fn and a module")
+    if patience is not None and (valid_fn is None or not isinstance(patience, int) or patience <= 0):
+        raise ValueError(f"patience: needs valid_fn and a positive int, got {patience!r}")
+    if keep_best is None:
+        keep_best = valid_fn is not None
+    if keep_best and valid_fn is None:
+        raise ValueError("keep_best: needs valid_fn")
     model = params_or_model if isinstance(params_or_model, nn.Module) else None
     params = [p for p in (model.parameters() if model is not None else params_or_model) if p.requires_grad]
     if not params:
         raise ValueError("params_or_model: no trainable parameters")
+
+    def snapshot() -> Any:
+        if model is not None:
+            return copy.deepcopy(model.state_dict())
+        return [p.detach().clone() for p in params]
+
+    def restore(state: Any) -> None:
+        if model is not None:
+            model.load_state_dict(state)
+        else:
+            with torch.no_grad():
+                for p, s in zip(params, state):
+                    p.copy_(s)
+
     opt = torch.optim.Adam(params, lr=lr, weight_decay=weight_decay)
     gen = torch.Generator().manual_seed(int(seed))
     hist = FitHistory()
-    best, best_state = float("inf"), None
-    n_batches = (n + batch_size - 1) // batch_size
+    best, best_state, since_best, n_steps = float("inf"), None, 0, 0
+    n_batches = max_batches if sampler else (n + batch_size - 1) // batch_size
     if max_batches is not None:
         n_batches = min(n_batches, max_batches)
-    t_start = time.perf_counter()
-    bar = tqdm(range(epochs), desc=desc, disable=not progress, leave=True)
-    for _epoch in bar:
+    cpu0, wall0 = time.process_time(), time.perf_counter()
+    bar = tqdm(total=epochs, desc=desc, disable=not show_progress(progress), leave=True)
+    epoch = 0
+    out_of_budget = False
+    while (epochs is None or epoch < epochs) and not out_of_budget:
         t0 = time.perf_counter()
         if model is not None:
             model.train()
-        perm = torch.randperm(n, generator=gen)
+        perm = None if sampler else torch.randperm(n, generator=gen)
         total, count = 0.0, 0
         for b in range(n_batches):
-            idx = perm[b * batch_size:(b + 1) * batch_size]
-            batch = tuple(t[idx] for t in train_tensors)
-            if crop_len is not None:
-                batch = random_crop(batch, crop_len, gen)
-            loss = loss_fn(batch, gen)
-            if loss.ndim != 0:
-                raise ValueError(f"loss_fn: must return a scalar, got shape {tuple(loss.shape)}")
+            idx = None
+            if sampler:
+                batch = train_tensors(gen)
+            else:
+                idx = perm[b * batch_size:(b + 1) * batch_size]
+                batch = tuple(t[idx] for t in train_tensors)
+                if crop_len is not None:
+                    batch = random_crop(batch, crop_len, gen)
+            where = lambda: f"at epoch {epoch}, batch {b} (sequence indices {_batch_indices(batch, idx)})"  # noqa: E731
+            try:
+                loss = loss_fn(batch, gen)
+            except ValueError as err:
+                raise ValueError(f"loss_fn: failed {where()}: {err}") from err
+            if not isinstance(loss, Tensor) or loss.ndim != 0:
+                raise ValueError(f"loss_fn: must return a scalar tensor, got {getattr(loss, 'shape', loss)!r}")
+            value = float(loss.detach())
+            if not math.isfinite(value):
+                raise ValueError(f"loss_fn: non-finite loss {value} {where()}")
             opt.zero_grad(set_to_none=True)
             loss.backward()
             if clip_norm is not None:
-                nn.utils.clip_grad_norm_(params, clip_norm)
+                norm = float(nn.utils.clip_grad_norm_(params, clip_norm))
+                if not math.isfinite(norm):
+                    raise ValueError(f"loss_fn: non-finite gradient norm {where()}")
             opt.step()
-            total += float(loss.detach()) * len(idx)
-            count += len(idx)
-        hist.train_loss.append(total / count)
+            n_steps += 1
+            size = len(idx) if idx is not None else 1
+            total, count = total + value * size, count + size
+            if budget_s is not None and time.process_time() - cpu0 >= budget_s:
+                out_of_budget = True
+                break
+        hist.train_loss.append(total / max(count, 1))
+        hist.steps.append(n_steps)
         post = {"loss": f"{hist.train_loss[-1]:.4g}"}
         if valid_fn is not None:
             if model is not None:
                 model.eval()
             with torch.no_grad():
                 v = float(valid_fn())
-            hist.valid_metric.append(v)
+            hist.valid_loss.append(v)
             post["valid"] = f"{v:.4g}"
             if v < best:
-                best, hist.best_epoch = v, len(hist.valid_metric) - 1
-                if keep_best and model is not None:
-                    best_state = copy.deepcopy(model.state_dict())
+                best, hist.best_epoch, since_best = v, epoch, 0
+                if keep_best:
+                    best_state = snapshot()
+            else:
+                since_best += 1
         hist.epoch_time.append(time.perf_counter() - t0)
+        bar.update(1)
         bar.set_postfix(post)
+        epoch += 1
+        if patience is not None and since_best >= patience:
+            hist.stopped = "patience"
+            break
+    if out_of_budget and hist.stopped == "epochs":
+        hist.stopped = "budget"
+    bar.close()
+    if keep_best and best_state is not None:
+        restore(best_state)
     if model is not None:
-        if keep_best and best_state is not None:
-            model.load_state_dict(best_state)
         model.eval()
-    hist.wall_time = time.perf_counter() - t_start
+    hist.cpu_time, hist.wall_time = time.process_time() - cpu0, time.perf_counter() - wall0
     return hist
-
-
-def prediction_loss(
-    model: Callable[..., tuple[Tensor, Tensor]],
-    obs: Tensor,
-    actions: Tensor,
-    mask: Tensor | None = None,
-    valid: Tensor | None = None,
-    loss: str = "nll",
-) -> Tensor:
-    r"""Next-observation loss of a world model: outputs at ``t = 0..T-2`` against ``obs[:, 1:]``.
-
-    ``loss="nll"``: :func:`pgm_wm.metrics.gaussian_nll` (Eq. metric-nll); ``"mse"``: mean squared
-    error of the mean; ``"rmse"``: its square root (the thesis' deterministic objective). ``valid:
-    (B, T)`` marks real (non-padding) steps; a target counts if it is valid. All targets count,
-    observed or not, so with an imputation mask this trains multi-step prediction.
-    """
-    check_tensor("obs", obs, 3)
-    if obs.shape[1] < 2:
-        raise ValueError(f"obs: need at least 2 time steps, got {obs.shape[1]}")
-    if loss not in ("nll", "mse", "rmse"):
-        raise ValueError(f"loss: expected 'nll', 'mse' or 'rmse', got {loss!r}")
-    mean, var = model(obs, actions, mask)
-    target = obs[:, 1:]
-    w = None if valid is None else check_mask("valid", valid, tuple(obs.shape[:2]))[:, 1:]
-    if loss == "nll":
-        return gaussian_nll(mean[:, :-1], var[:, :-1], target, w)
-    r = rmse(mean[:, :-1], target, w)
-    return r if loss == "rmse" else r * r
-
-
-def imputation_loss_fn(
-    model: Callable[..., tuple[Tensor, Tensor]],
-    keep_prob: float = 0.25,
-    context_steps: int = 5,
-    loss: str = "nll",
-    open_loop_prob: float = 0.0,
-) -> Callable[[tuple[Tensor, ...], torch.Generator], Tensor]:
-    """A ``loss_fn`` for :func:`fit` on batches ``(obs, actions[, valid])``: draws a fresh
-    :func:`imputation_mask` per batch and returns :func:`prediction_loss`."""
-
-    def loss_fn(batch: tuple[Tensor, ...], gen: torch.Generator) -> Tensor:
-        obs, actions = batch[0], batch[1]
-        valid = batch[2] if len(batch) > 2 else None
-        mask = imputation_mask(obs.shape[:2], keep_prob, context_steps, gen, device=obs.device,
-                               open_loop_prob=open_loop_prob)
-        if valid is not None:
-            mask = mask & valid.bool()
-        return prediction_loss(model, obs, actions, mask, valid, loss)
-
-    return loss_fn
-
-
-def multistep_predict(
-    model: Callable[..., tuple[Tensor, Tensor]],
-    obs: Tensor,
-    actions: Tensor,
-    context_len: int,
-    horizon: int | None = None,
-) -> tuple[Tensor, Tensor]:
-    r"""Open-loop prediction after a context, Eq. (acrkn-multistep).
-
-    The model sees ``obs[:, :context_len]`` and the actions ``actions[:, :context_len + horizon - 1]``;
-    later observations are **not passed** to it (zeros and ``mask`` False are), so no future
-    observation can leak. Returns ``(mean, var)`` of shape ``(B, horizon, do)`` where index
-    ``k - 1`` is the :math:`k`-step-ahead prediction of ``obs[:, context_len - 1 + k]``.
-    ``horizon`` defaults to ``T - context_len``.
-    """
-    check_tensor("obs", obs, 3)
-    check_tensor("actions", actions, 3)
-    B, T = obs.shape[:2]
-    if tuple(actions.shape[:2]) != (B, T):
-        raise ValueError(f"actions: expected leading shape {(B, T)}, got {tuple(actions.shape)}")
-    if not 1 <= context_len < T:
-        raise ValueError(f"context_len: must be in [1, T-1] = [1, {T - 1}], got {context_len}")
-    if horizon is None:
-        horizon = T - context_len
-    if not 1 <= horizon <= T - context_len:
-        raise ValueError(f"horizon: must be in [1, {T - context_len}], got {horizon}")
-    L = context_len + horizon - 1  # inputs 0..L-1; output L-1 predicts obs[L]
-    seen = torch.zeros_like(obs[:, :L])
-    seen[:, :context_len] = obs[:, :context_len]
-    mask = torch.zeros(B, L, dtype=torch.bool, device=obs.device)
-    mask[:, :context_len] = True
-    mean, var = model(seen, actions[:, :L], mask)
-    return mean[:, context_len - 1:], var[:, context_len - 1:]
-
-
-def sliding_windows(x: Tensor, length: int, stride: int) -> Tensor:
-    """Cut ``x: (B, T, ...)`` (any dtype, e.g. a mask) into windows ``(B * n_windows, length, ...)``
-    starting every ``stride`` steps (windows of sequence 0 first)."""
-    if not isinstance(x, Tensor):
-        raise ValueError(f"x: expected a torch.Tensor, got {type(x).__name__}")
-    if x.ndim < 2:
-        raise ValueError(f"x: expected (B, T, ...), got shape {tuple(x.shape)}")
-    T = x.shape[1]
-    if not 1 <= length <= T:
-        raise ValueError(f"length: must be in [1, {T}], got {length}")
-    if stride <= 0:
-        raise ValueError(f"stride: must be positive, got {stride}")
-    starts = range(0, T - length + 1, stride)
-    w = torch.stack([x[:, s:s + length] for s in starts], dim=1)  # (B, n, length, ...)
-    return w.reshape(-1, length, *x.shape[2:])
-
-
-def multistep_metrics(
-    model: Callable[..., tuple[Tensor, Tensor]],
-    obs: Tensor,
-    actions: Tensor,
-    context_len: int,
-    horizon: int,
-    stride: int | None = None,
-    obs_mean: Tensor | None = None,
-    obs_std: Tensor | None = None,
-    batch_size: int = 256,
-) -> dict[str, Tensor]:
-    """RMSE and NLL of :func:`multistep_predict` for every horizon ``1..horizon``.
-
-    Sequences ``obs, actions: (B, T, ·)`` are cut into windows of ``context_len + horizon`` steps
-    every ``stride`` steps (default: ``horizon``); each window gives a context and an open-loop
-    stretch. With ``obs_mean``/``obs_std`` (training statistics) predictions and targets are
-    mapped back to original units before scoring (:func:`pgm_wm.metrics.denormalize`).
-
-    Returns ``{"rmse": (horizon,), "nll": (horizon,), "mean": (N, horizon, do), "var": ...,
-    "target": ...}`` with ``N`` the number of windows (predictions in the scored units).
-    """
-    from .metrics import denormalize, denormalize_var
-
-    L = context_len + horizon
-    if (obs_mean is None) != (obs_std is None):
-        raise ValueError("obs_std: give obs_mean and obs_std together")
-    ow = sliding_windows(obs, L, stride or horizon)
-    aw = sliding_windows(actions, L, stride or horizon)
-    means, vars_ = [], []
-    with torch.no_grad():
-        for i in range(0, ow.shape[0], batch_size):
-            mu, var = multistep_predict(model, ow[i:i + batch_size], aw[i:i + batch_size], context_len, horizon)
-            means.append(mu)
-            vars_.append(var)
-    mean, var = torch.cat(means), torch.cat(vars_)
-    target = ow[:, context_len:]
-    if obs_std is not None:
-        mean, var = denormalize(mean, obs_mean, obs_std), denormalize_var(var, obs_std)
-        target = denormalize(target, obs_mean, obs_std)
-    return {"rmse": rmse(mean, target, dim=(0, 2)), "nll": gaussian_nll(mean, var, target, dim=(0, 2)),
-            "mean": mean, "var": var, "target": target}

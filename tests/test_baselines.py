@@ -8,7 +8,7 @@ import torch
 
 from pgm_wm.acrkn import DifferenceReadout
 from pgm_wm.baselines import FFNNBaseline, GRUBaseline, LSTMBaseline, RKNActionsAsObs
-from pgm_wm.training import multistep_predict
+from pgm_wm.evaluation import multistep_predict
 
 DT = torch.float64
 BUILDERS = {

@@ -21,21 +21,9 @@ from pgm_wm.factorized import FactorizedBelief, known_input
 from pgm_wm.gaussian import Gaussian, marginalize_linear
 from pgm_wm.hiprssm import (
     HiPRSSM,
-    HiPWindows,
     LinearTaskTransform,
     NonlinearTaskTransform,
     RecurrentContextEncoder,
-    context_features,
-    eval_masks,
-    evaluate_windows,
-    floor_variance,
-    hip_loss_fn,
-    infer_trajectory,
-    latent_pca,
-    make_windows,
-    predict_windows,
-    resample_past_contexts,
-    window_rmse,
 )
 from pgm_wm.kalman import kalman_filter
 from pgm_wm.rkn import BeliefDecoder, LocallyLinearTransition, ObservationEncoder
@@ -321,190 +309,14 @@ def test_more_context_shrinks_the_task_variance():
 
 # ================================================================ windows and inference
 
-@SETTINGS
-@given(n=st.integers(1, 3), k=st.integers(2, 7), extra=st.integers(0, 6), include_first=st.booleans())
-def test_windows_never_put_the_window_or_its_future_into_the_context(n, k, extra, include_first):
-    T = 3 * k + extra
-    obs, act, valid = seq_data(n, T, p_valid=0.9)
-    w = make_windows(obs, act, k, valid, include_first=include_first)
-    n_win = T // k
-    assert w.n_windows == n * (n_win - (0 if include_first else 1))
-    present = w.context_mask
-    assert bool((w.context_time[present] < w.start[:, None].expand_as(present)[present]).all())
-    assert bool((w.context_time[present] >= (w.start[:, None] - k).expand_as(present)[present]).all())
-    # reference: the context of window (s, j) is built from raw steps (j-1)k .. jk-1 only
-    for i in range(w.n_windows):
-        s, t0 = int(w.seq[i]), int(w.start[i])
-        torch.testing.assert_close(w.obs[i], obs[s, t0:t0 + k])
-        if t0 == 0:
-            assert not bool(w.context_mask[i].any())
-            continue
-        x, cm = context_features(obs[s, t0 - k:t0], act[s, t0 - k:t0], valid[s, t0 - k:t0])
-        assert torch.equal(w.context_mask[i], cm)
-        torch.testing.assert_close(w.context[i][cm], x[cm])
-    # perturbing everything at or after a window's start leaves its context unchanged
-    j = 1 if include_first else 0
-    t0 = int(w.start[j])
-    obs2, act2 = obs.clone(), act.clone()
-    obs2[:, t0:] += 100.0
-    act2[:, t0:] -= 100.0
-    w2 = make_windows(obs2, act2, k, valid, include_first=include_first)
-    torch.testing.assert_close(w2.context[j], w.context[j])
-
-
-def test_resampled_contexts_come_from_earlier_windows_of_the_same_trajectory():
-    obs, act, valid = seq_data(3, 40, p_valid=0.9)
-    w = make_windows(obs, act, 5, valid)
-    r = resample_past_contexts(w, torch.Generator().manual_seed(0))
-    picked_other = 0
-    for i in range(w.n_windows):
-        # the resampled set is the (unchanged) context of a window j' of the same trajectory, j' <= j
-        cands = [j for j in range(w.n_windows) if w.seq[j] == w.seq[i] and w.start[j] <= w.start[i]
-                 and torch.equal(w.context[j], r.context[i]) and torch.equal(w.context_mask[j], r.context_mask[i])]
-        assert cands, i
-        picked_other += int(cands[-1] != i)
-        present = r.context_mask[i]
-        assert bool((r.context_time[i][present] < w.start[i]).all())
-    assert picked_other > w.n_windows // 3           # most windows got an earlier context
-    torch.testing.assert_close(r.obs, w.obs)
-    assert not torch.equal(r.context, resample_past_contexts(w, torch.Generator().manual_seed(1)).context)
-
-
-def test_context_features_standardize_the_difference_and_mask_pairs():
-    obs, act, valid = seq_data(2, 6, p_valid=0.7)
-    shift, scale = torch.tensor([0.1, -0.2, 0.3], dtype=DT), torch.tensor([0.5, 2.0, 1.5], dtype=DT)
-    x, m = context_features(obs, act, valid, shift, scale)
-    o = torch.where(valid[..., None], obs, 0.0)
-    torch.testing.assert_close(x[..., -3:], (o[:, 1:] - o[:, :-1] - shift) / scale)
-    torch.testing.assert_close(x[..., :3], o[:, :-1])
-    torch.testing.assert_close(x[..., 3:5], act[:, :-1])
-    assert torch.equal(m, valid[:, 1:] & valid[:, :-1])
-
-
-def test_window_history_is_the_previous_window():
-    obs, act, valid = seq_data(2, 20)
-    w = make_windows(obs, act, 5, valid, hidden={"p": obs[..., 0]})
-    ho, ha, hv = w.with_history()
-    for i in range(w.n_windows):
-        s, t0 = int(w.seq[i]), int(w.start[i])
-        torch.testing.assert_close(ho[i], obs[s, t0 - 5:t0 + 5])
-        torch.testing.assert_close(ha[i], act[s, t0 - 5:t0 + 5])
-        torch.testing.assert_close(w.hidden["p"][i], obs[s, t0:t0 + 5, 0])
-    sub = w.select(torch.tensor([2, 0]))
-    assert isinstance(sub, HiPWindows) and sub.n_windows == 2
-    torch.testing.assert_close(sub.obs[1], w.obs[0])
-
-
-def test_infer_trajectory_equals_explicit_window_loop_and_is_causal():
-    n, T, k = 2, 23, 5
-    obs, act, valid = seq_data(n, T, p_valid=0.85)
-    hip = make_hip()
-    shift, scale = torch.full((3,), 0.1, dtype=DT), torch.full((3,), 0.5, dtype=DT)
-    mean, var, t_mean, t_var = infer_trajectory(hip, obs, act, k, valid, shift, scale)
-    assert mean.shape == (n, 20, 3) and t_mean.shape == (n, 4, 4)
-    with torch.no_grad():
-        for j in range(4):
-            sl = slice(j * k, (j + 1) * k)
-            if j == 0:
-                ctx, cm = None, None
-            else:
-                ctx, cm = context_features(obs[:, sl.start - k:sl.start], act[:, sl.start - k:sl.start],
-                                           valid[:, sl.start - k:sl.start], shift, scale)
-            mu, v, tm, tv = hip.predict(obs[:, sl], act[:, sl], valid[:, sl], ctx, cm)
-            torch.testing.assert_close(mean[:, sl], mu)
-            torch.testing.assert_close(var[:, sl], v)
-            torch.testing.assert_close(t_mean[:, j], tm)
-    # causality: changing o_s (and a_s) never changes a prediction made at an index < s
-    for s in (3, 5, 11, 15):
-        obs2, act2 = obs.clone(), act.clone()
-        obs2[:, s:] += 5.0
-        act2[:, s:] -= 5.0
-        m2, _, _, _ = infer_trajectory(hip, obs2, act2, k, valid, shift, scale)
-        torch.testing.assert_close(m2[:, :s], mean[:, :s], rtol=0, atol=0)
-        assert not torch.allclose(m2[:, s:], mean[:, s:])
-
 
 # ================================================================ evaluation helpers
-
-def test_eval_masks_are_seeded_and_hide_the_open_loop_part():
-    a = eval_masks(50, 10, 0.5, None, 1, seed=3)
-    assert torch.equal(a, eval_masks(50, 10, 0.5, None, 1, seed=3))
-    assert bool(a[:, 0].all()) and 0.35 < float(a[:, 1:].float().mean()) < 0.65
-    b = eval_masks(50, 10, 1.0, 4, 1, seed=0)
-    assert bool(b[:, :4].all()) and not bool(b[:, 4:].any())
-
-
-def test_predict_windows_hides_masked_observations_and_window_rmse_units():
-    obs, act, valid = seq_data(3, 24)
-    w = make_windows(obs, act, 6, valid)
-    hip = make_hip()
-    mask = eval_masks(w.n_windows, 6, 1.0, 3, 1, seed=0)
-    mu, _ = predict_windows(hip, w, mask)
-    w_bad = HiPWindows(**{**w.__dict__, "obs": torch.where(mask[..., None], w.obs, torch.nan)})
-    mu_bad, _ = predict_windows(hip, w_bad, mask)
-    torch.testing.assert_close(mu_bad, mu)
-    std = torch.tensor([2.0, 0.5, 3.0], dtype=DT)
-    got = window_rmse(mu, w, std, from_step=2)
-    err = ((mu[:, 2:5] - w.obs[:, 3:]) * std).numpy()
-    assert abs(float(got) - float(np.sqrt((err**2).mean()))) < 1e-12
-    # a plain world model with the previous window as history
-    mu_h, _ = predict_windows(hip.acrkn, w, mask, use_context=False, use_history=True)
-    ho, ha, hv = w.with_history()
-    full_mask = torch.cat([hv[:, :6], mask & w.valid], 1)
-    ref, _ = hip.acrkn(torch.where(full_mask[..., None], ho, 0.0), ha, full_mask)
-    torch.testing.assert_close(mu_h, ref[:, 6:])
-    res = evaluate_windows(hip, w, std)
-    assert set(res) == {"one_step", "one_step_imp", "multi_step", "multi_step_imp"}
-    assert all(np.isfinite(v) and v > 0 for v in res.values())
-
-
-def test_hip_loss_reaches_every_part_of_the_model():
-    obs, act, valid = seq_data(4, 24)
-    w = make_windows(obs, act, 6, valid)
-    for encoder in ("ba", "recurrent"):
-        hip = make_hip(encoder=encoder)
-        loss = hip_loss_fn(hip, keep_prob=0.5)(w.tensors(), torch.Generator().manual_seed(0))
-        assert loss.ndim == 0 and torch.isfinite(loss)
-        loss.backward()
-        for part in (hip.context_encoder, hip.task_transform, hip.acrkn.control, hip.acrkn.transition):
-            grads = [p.grad for p in part.parameters() if p.requires_grad]
-            assert any(gr is not None and float(gr.abs().sum()) > 0 for gr in grads), type(part).__name__
-
-
-def test_floor_variance_only_lifts_tiny_variances():
-    model = lambda x: (x, x.abs())  # noqa: E731
-    x = torch.tensor([0.0, -1e-12, 0.5, -2.0], dtype=DT)
-    mean, var = floor_variance(model, 1e-8)(x)
-    assert torch.equal(mean, x)
-    assert torch.equal(var, torch.tensor([1e-8, 1e-8, 0.5, 2.0], dtype=DT))
-    with pytest.raises(ValueError, match="min_var"):
-        floor_variance(model, 0.0)
-
-
-def test_latent_pca_matches_numpy_svd():
-    g = torch.Generator().manual_seed(0)
-    x = torch.randn(40, 5, generator=g, dtype=DT) @ torch.randn(5, 5, generator=g, dtype=DT)
-    scores, ratio = latent_pca(x, 2)
-    xc = x.numpy() - x.numpy().mean(0)
-    u, s, vt = np.linalg.svd(xc, full_matrices=False)
-    np.testing.assert_allclose(ratio.numpy(), (s**2 / (s**2).sum())[:2], rtol=1e-10)
-    np.testing.assert_allclose(np.abs(scores.numpy()), np.abs(xc @ vt[:2].T), rtol=1e-8, atol=1e-10)
 
 
 # ================================================================ bad inputs
 
 def test_bad_inputs_raise_value_error():
     obs, act, valid = seq_data(2, 12)
-    with pytest.raises(ValueError, match="window_len"):
-        make_windows(obs, act, 1)
-    with pytest.raises(ValueError, match="window_len"):
-        make_windows(obs, act, 7)  # only one window and no first window allowed
-    with pytest.raises(ValueError, match="actions"):
-        make_windows(obs, act[:, :5], 3)
-    with pytest.raises(ValueError, match="valid"):
-        make_windows(obs, act, 3, valid[:, :5])
-    with pytest.raises(ValueError, match="diff_scale"):
-        context_features(obs, act, None, None, torch.tensor([1.0, 0.0, 1.0], dtype=DT))
     with pytest.raises(ValueError, match="var"):
         LinearTaskTransform(3, 2)(torch.zeros(1, 3), torch.zeros(1, 4))
     with pytest.raises(ValueError, match="latent_dim"):
@@ -519,10 +331,6 @@ def test_bad_inputs_raise_value_error():
         hip(o, a, m, ctx, cm[:, :2])
     with pytest.raises(ValueError, match="task"):
         hip(o, a, m, task=(torch.zeros(4, 4, dtype=DT), -torch.ones(4, 4, dtype=DT)))
-    with pytest.raises(ValueError, match="keep_prob"):
-        eval_masks(3, 5, 1.5)
-    with pytest.raises(ValueError, match="n_components"):
-        latent_pca(torch.randn(4, 3), 5)
 
 
 # ================================================================ chapter-5 plot helpers (smoke + bad input)

@@ -31,9 +31,6 @@ from pgm_wm.mts3 import (
     run_fast_level,
     task_predict,
     time_encoding,
-    to_windows,
-    window_imputation_loss_fn,
-    window_imputation_mask,
 )
 from pgm_wm.rkn import LocallyLinearTransition
 from pgm_wm.training import prediction_loss
@@ -384,31 +381,6 @@ def test_open_loop_predictions_stay_bounded_at_initialization():
 
 
 # ----------------------------------------------------------------------------- masks and losses
-def test_window_imputation_mask_properties():
-    gen = torch.Generator().manual_seed(0)
-    m = window_imputation_mask((400, 60), 10, 1.0, 0.5, context_windows=2, generator=gen)
-    assert m.shape == (400, 60) and m.dtype == torch.bool
-    assert m[:, :20].all()
-    w = to_windows(m, 10)
-    assert ((w.all(-1)) | (~w.any(-1))).all()  # whole windows kept or dropped
-    assert abs(float((~w[:, 2:].any(-1)).double().mean()) - 0.5) < 0.03
-    m2 = window_imputation_mask((400, 60), 10, 0.7, 0.0, context_windows=0, generator=gen)
-    assert abs(float(m2.double().mean()) - 0.7) < 0.02
-    m3 = window_imputation_mask((2, 23), 10, 0.0, 0.0, context_windows=1)
-    assert m3[:, :10].all() and not m3[:, 10:].any()
-
-
-def test_window_imputation_loss_fn_masks_are_real():
-    """The masking probabilities are real arguments (the authors' code hard-codes one)."""
-    model = mts3(H=4)
-    obs, act, _ = data(3, 12)
-    gen = torch.Generator().manual_seed(0)
-    full = window_imputation_loss_fn(model, 4, 1.0, 0.0)((obs, act), gen)
-    close(full, prediction_loss(model, obs, act, None))
-    hidden = window_imputation_loss_fn(model, 4, 0.0, 0.0, context_windows=1)((obs, act), gen)
-    mask = torch.zeros(3, 12, dtype=torch.bool)
-    mask[:, :4] = True
-    close(hidden, prediction_loss(model, obs, act, mask))
 
 
 # ----------------------------------------------------------------------------- input checks
@@ -421,14 +393,6 @@ def test_invalid_inputs_raise_naming_the_argument():
         model(obs, act, mask[:, :5])
     with pytest.raises(ValueError, match="actions"):
         model(obs, act[:, :5], mask)
-    with pytest.raises(ValueError, match="window"):
-        window_imputation_mask((2, 8), 0, 0.5, 0.5)
-    with pytest.raises(ValueError, match="step_keep_prob"):
-        window_imputation_mask((2, 8), 4, 1.5, 0.5)
-    with pytest.raises(ValueError, match="window_drop_prob"):
-        window_imputation_mask((2, 8), 4, 0.5, -0.1)
-    with pytest.raises(ValueError, match="window"):
-        to_windows(obs, 3)
     with pytest.raises(ValueError, match="init"):
         BlockMatrix(3, init=(1.0, 2.0))
     with pytest.raises(ValueError, match="latent_dim"):
@@ -478,27 +442,6 @@ def test_transformer_baseline_is_causal_and_respects_the_mask():
         TransformerBaseline(DO, DA, d_model=7, n_heads=2)
 
 
-def test_evaluate_open_loop_uses_only_the_context_and_original_units():
-    from pgm_wm.mts3 import evaluate_open_loop
-
-    model = mts3(H=4)
-    obs, act, _ = data(2, 16)
-    mu, sd = torch.tensor([1.0, -2.0, 0.5], dtype=DT), torch.tensor([2.0, 0.5, 3.0], dtype=DT)
-    res = evaluate_open_loop(model, obs, act, 8, mu, sd, 3)
-    obs2 = obs.clone()
-    obs2[:, 8:] += 5.0  # future observations must not matter
-    res2 = evaluate_open_loop(model, obs2, act, 8, mu, sd, 3)
-    close(res.mean, res2.mean)
-    mask = torch.zeros(2, 15, dtype=torch.bool)
-    mask[:, :8] = True
-    mean, var = model(torch.where(mask[..., None], obs[:, :15], 0.0), act[:, :15], mask)
-    close(res.mean, mean[:, 7:] * sd + mu)
-    close(res.var, var[:, 7:] * sd**2)
-    close(res.target, obs[:, 8:] * sd + mu)
-    err = ((res.mean - res.target) ** 2).mean((0, 2))
-    close(res.rmse[2], err[:3].mean().sqrt())
-
-
 def test_band_blocks_general_path_parallel_equals_sequential_and_is_causal():
     a = mts3(H=4, bandwidth=1)
     b = copy.deepcopy(a)
@@ -512,16 +455,3 @@ def test_band_blocks_general_path_parallel_equals_sequential_and_is_causal():
     close(m1[:, :6], m2[:, :6])
 
 
-def test_evaluate_open_loop_reports_divergence_as_inf():
-    from pgm_wm.mts3 import evaluate_open_loop
-
-    def diverging(o, a, mk):  # NaN from output index 8 on = horizon index 5 (context 4)
-        mean = torch.zeros(o.shape, dtype=o.dtype)
-        mean[:, 8:] = float("nan")
-        return mean, torch.ones_like(mean)
-
-    obs, act, _ = data(2, 16)
-    one = torch.ones(DO, dtype=DT)
-    res = evaluate_open_loop(diverging, obs, act, 4, 0 * one, one, 3)
-    assert torch.isfinite(res.rmse[:5]).all() and torch.isfinite(res.nll[:5]).all()
-    assert torch.isinf(res.rmse[5:]).all() and torch.isinf(res.nll[5:]).all()

@@ -1,5 +1,6 @@
-"""Tests for pgm_wm.training and pgm_wm.metrics: masks, crops, the fit loop, open-loop
-prediction without leakage, and the metrics against direct numpy/scipy computations."""
+"""Tests for pgm_wm.training and pgm_wm.metrics: the observation masks, crops, the one loss
+factory, the one fit loop (budget, early stopping, keep-best, non-finite stops), and the metrics
+against direct numpy/scipy computations."""
 
 from __future__ import annotations
 
@@ -10,29 +11,33 @@ import pytest
 import torch
 from scipy.stats import norm
 
-from pgm_wm.acrkn import AcRKN, DifferenceReadout, MLPControl
+from pgm_wm.acrkn import AcRKN, MLPControl
+from pgm_wm.datasets.windows import make_windows
 from pgm_wm.metrics import denormalize, denormalize_var, gaussian_nll, normalize, rmse
 from pgm_wm.rkn import BeliefDecoder, LocallyLinearTransition, ObservationEncoder
+
+from _helpers import seq_data, small_hip, small_mts3
 from pgm_wm.training import (
     fit,
+    floor_variance,
     imputation_loss_fn,
-    imputation_mask,
-    multistep_predict,
+    observation_mask,
     prediction_loss,
     random_crop,
     set_seed,
-    sliding_windows,
+    show_progress,
 )
 
 DT = torch.float64
+assert_close = torch.testing.assert_close
 
 
 # ----------------------------------------------------------------------------- masks and seeds
 
-def test_imputation_mask_fraction_and_context():
+def test_observation_mask_fraction_and_context():
     g = torch.Generator().manual_seed(0)
     B, T, c, p = 200, 150, 5, 0.25
-    mask = imputation_mask((B, T), p, c, g)
+    mask = observation_mask((B, T), p, c, generator=g)
     assert mask.dtype == torch.bool and mask.shape == (B, T)
     assert bool(mask[:, :c].all())
     rest = mask[:, c:].double()
@@ -44,15 +49,15 @@ def test_imputation_mask_fraction_and_context():
     assert float((col - p).abs().max()) < 5 * math.sqrt(p * (1 - p) / B)
 
 
-def test_imputation_mask_is_seeded_and_resampled():
-    m1 = imputation_mask((4, 50), 0.5, 3, torch.Generator().manual_seed(1))
-    m2 = imputation_mask((4, 50), 0.5, 3, torch.Generator().manual_seed(1))
+def test_observation_mask_is_seeded_and_resampled():
+    m1 = observation_mask((4, 50), 0.5, 3, generator=torch.Generator().manual_seed(1))
+    m2 = observation_mask((4, 50), 0.5, 3, generator=torch.Generator().manual_seed(1))
     assert torch.equal(m1, m2)
     g = torch.Generator().manual_seed(1)
-    a, b = imputation_mask((4, 50), 0.5, 3, g), imputation_mask((4, 50), 0.5, 3, g)
+    a, b = observation_mask((4, 50), 0.5, 3, generator=g), observation_mask((4, 50), 0.5, 3, generator=g)
     assert not torch.equal(a, b)
-    assert bool(imputation_mask((3, 4), 0.0, 10).all())  # context longer than T: all kept
-    assert not bool(imputation_mask((3, 40), 0.0, 2)[:, 2:].any())
+    assert bool(observation_mask((3, 4), 0.0, 10).all())  # context longer than T: all kept
+    assert not bool(observation_mask((3, 40), 0.0, 2)[:, 2:].any())
 
 
 def test_set_seed_reproducible():
@@ -73,14 +78,6 @@ def test_random_crop_is_consistent_and_contiguous():
     steps = cx[:, 1:, 0] - cx[:, :-1, 0]
     assert bool((steps == 1).all())
     assert torch.equal((cx[:, 0, 0] // T), torch.arange(B, dtype=DT))  # row stays its own sequence
-
-
-def test_sliding_windows():
-    x = torch.arange(2 * 10, dtype=DT).reshape(2, 10)
-    w = sliding_windows(x, 4, 3)
-    assert w.shape == (2 * 3, 4)
-    torch.testing.assert_close(w[1], x[0, 3:7])
-    torch.testing.assert_close(w[3], x[1, 0:4])
 
 
 # ----------------------------------------------------------------------------- fit
@@ -104,7 +101,7 @@ def test_fit_reaches_least_squares_and_is_seeded():
     w_ls = torch.linalg.lstsq(X, y[:, None]).solution[:, 0]
     torch.testing.assert_close(results[0], w_ls, atol=2e-2, rtol=0)
     assert torch.equal(results[0], results[1])
-    assert len(hist.train_loss) == 60 == len(hist.valid_metric) == len(hist.epoch_time)
+    assert len(hist.train_loss) == 60 == len(hist.valid_loss) == len(hist.epoch_time)
     assert hist.train_loss[-1] < 0.01 * hist.train_loss[0]
     assert hist.wall_time > 0
 
@@ -141,26 +138,14 @@ def test_fit_bad_inputs():
     with pytest.raises(ValueError, match="loss_fn"):
         fit(lambda b, g: (b[0] @ w - b[1]) ** 2, [w], (X, y), 8, 1, progress=False)
     with pytest.raises(ValueError, match="keep_prob"):
-        imputation_mask((2, 3), 1.5)
+        observation_mask((2, 3), 1.5)
     with pytest.raises(ValueError, match="shape"):
-        imputation_mask((2, 3, 4), 0.5)
+        observation_mask((2, 3, 4), 0.5)
     with pytest.raises(ValueError, match="context_steps"):
-        imputation_mask((2, 3), 0.5, -1)
+        observation_mask((2, 3), 0.5, -1)
 
 
 # ----------------------------------------------------------------------------- world-model helpers
-
-class CountingModel(torch.nn.Module):
-    """A toy world model whose normalized difference is always +1: o_hat_{t+1} = m_t + 1."""
-
-    def __init__(self):
-        super().__init__()
-        self.readout = DifferenceReadout(2)
-
-    def forward(self, obs, actions, mask):
-        delta = torch.ones_like(obs)
-        return self.readout(obs, mask, delta + 0 * actions.sum(-1, keepdim=True), torch.ones_like(obs))
-
 
 def _acrkn(m=4, do=2, da=2):
     torch.manual_seed(0)
@@ -168,51 +153,11 @@ def _acrkn(m=4, do=2, da=2):
                  BeliefDecoder(m, do, (16,), (16,))).double()
 
 
-def test_multistep_indexing_with_counting_model():
-    obs = torch.randn(3, 20, 2, dtype=DT)
-    act = torch.randn(3, 20, 2, dtype=DT)
-    mean, var = multistep_predict(CountingModel(), obs, act, context_len=6, horizon=7)
-    assert mean.shape == (3, 7, 2)
-    k = torch.arange(1, 8, dtype=DT)[None, :, None]
-    torch.testing.assert_close(mean, obs[:, 5:6] + k)  # k-step prediction = last context obs + k
-
-
-@pytest.mark.parametrize("model_fn", [_acrkn, CountingModel])
-def test_multistep_uses_no_future_observation(model_fn):
-    model = model_fn()
-    g = torch.Generator().manual_seed(2)
-    obs, act = torch.randn(2, 30, 2, generator=g, dtype=DT), torch.randn(2, 30, 2, generator=g, dtype=DT)
-    c, h = 8, 15
-    mean, var = multistep_predict(model, obs, act, c, h)
-    corrupt = obs.clone()
-    corrupt[:, c:] = float("nan")
-    act2 = act.clone()
-    act2[:, c + h - 1:] = 1e3  # actions after the last predicted step are irrelevant too
-    mean2, var2 = multistep_predict(model, corrupt, act2, c, h)
-    torch.testing.assert_close(mean2, mean)
-    torch.testing.assert_close(var2, var)
-    # and the result equals one call with the future masked out
-    mask = torch.zeros(2, c + h - 1, dtype=torch.bool)
-    mask[:, :c] = True
-    m3, _ = model(torch.where(mask[..., None], obs[:, :c + h - 1], 0.0), act[:, :c + h - 1], mask)
-    torch.testing.assert_close(m3[:, c - 1:], mean)
-
-
-def test_multistep_bad_inputs():
-    obs = torch.randn(2, 10, 2)
-    with pytest.raises(ValueError, match="context_len"):
-        multistep_predict(CountingModel(), obs, obs, 10)
-    with pytest.raises(ValueError, match="horizon"):
-        multistep_predict(CountingModel(), obs, obs, 5, 6)
-    with pytest.raises(ValueError, match="actions"):
-        multistep_predict(CountingModel(), obs, obs[:, :9], 5)
-
-
 def test_prediction_loss_matches_metrics_and_imputation_loss_trains():
     model = _acrkn()
     g = torch.Generator().manual_seed(0)
     obs, act = torch.randn(4, 12, 2, generator=g, dtype=DT), torch.randn(4, 12, 2, generator=g, dtype=DT)
-    mask = imputation_mask((4, 12), 0.5, 2, g)
+    mask = observation_mask((4, 12), 0.5, 2, generator=g)
     mean, var = model(obs, act, mask)
     torch.testing.assert_close(prediction_loss(model, obs, act, mask),
                                gaussian_nll(mean[:, :-1], var[:, :-1], obs[:, 1:]))
@@ -291,20 +236,187 @@ def test_metric_bad_inputs():
         denormalize(x, 0.0, torch.ones(3))
 
 
-def test_multistep_metrics_matches_manual_windows():
-    from pgm_wm.training import multistep_metrics
 
-    g = torch.Generator().manual_seed(4)
-    obs, act = torch.randn(2, 30, 2, generator=g, dtype=DT), torch.randn(2, 30, 2, generator=g, dtype=DT)
-    mu, sd = torch.tensor([1.0, -1.0], dtype=DT), torch.tensor([2.0, 0.5], dtype=DT)
-    res = multistep_metrics(CountingModel(), obs, act, 5, 4, stride=7, obs_mean=mu, obs_std=sd)
-    starts = list(range(0, 30 - 9 + 1, 7))
-    assert res["mean"].shape == (2 * len(starts), 4, 2)
-    errs = []
-    for b in range(2):
-        for s in starts:
-            pred = obs[b, s + 4] + torch.arange(1, 5, dtype=DT)[:, None]  # counting model: last obs + k
-            errs.append((denormalize(pred, mu, sd) - denormalize(obs[b, s + 5:s + 9], mu, sd)) ** 2)
-    want = torch.stack(errs).mean(dim=(0, 2)).sqrt()
-    torch.testing.assert_close(res["rmse"], want)
-    assert res["nll"].shape == (4,)
+
+# ----------------------------------------------------------------------------- one mask generator
+
+def test_window_drops_keep_or_drop_whole_windows():
+    gen = torch.Generator().manual_seed(0)
+    m = observation_mask((400, 60), 1.0, 20, window=10, window_drop_prob=0.5, generator=gen)
+    assert m.shape == (400, 60) and m.dtype == torch.bool
+    assert m[:, :20].all()
+    w = m.reshape(400, 6, 10)
+    assert ((w.all(-1)) | (~w.any(-1))).all()  # whole windows kept or dropped
+    assert abs(float((~w[:, 2:].any(-1)).double().mean()) - 0.5) < 0.03
+    m2 = observation_mask((400, 60), 0.7, 0, window=10, generator=gen)
+    assert abs(float(m2.double().mean()) - 0.7) < 0.02
+    m3 = observation_mask((2, 23), 0.0, 10, window=10)
+    assert m3[:, :10].all() and not m3[:, 10:].any()
+
+
+def test_fixed_open_loop_cut_masks_are_seeded_and_hide_the_open_loop_part():
+    a = observation_mask((50, 10), 0.5, 1, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(a, observation_mask((50, 10), 0.5, 1, generator=torch.Generator().manual_seed(3)))
+    assert bool(a[:, 0].all()) and 0.35 < float(a[:, 1:].float().mean()) < 0.65
+    b = observation_mask((50, 10), 1.0, 1, open_loop_prob=1.0, open_loop_start=4)
+    assert bool(b[:, :4].all()) and not bool(b[:, 4:].any())
+
+
+def test_open_loop_cut_hides_everything_after_a_random_cut():
+    g = torch.Generator().manual_seed(0)
+    m = observation_mask((500, 30), 1.0, 4, open_loop_prob=0.5, generator=g)
+    assert bool(m[:, :4].all())
+    cut = m.sum(1)  # with keep_prob 1 the kept steps are exactly 0..cut-1
+    assert torch.equal(m, torch.arange(30)[None, :] < cut[:, None])
+    # half of the sequences get a cut, uniform on [4, 30): a cut at 4..29 leaves 4..29 steps
+    frac_cut = float((cut < 30).double().mean())
+    assert 0.5 * 25 / 26 - 0.07 < frac_cut < 0.5 + 0.07 and int(cut.min()) >= 4
+
+
+def test_observation_mask_bad_inputs():
+    with pytest.raises(ValueError, match="window"):
+        observation_mask((2, 8), 0.5, window=0)
+    with pytest.raises(ValueError, match="window_drop_prob"):
+        observation_mask((2, 8), 0.5, window=4, window_drop_prob=-0.1)
+    with pytest.raises(ValueError, match="window_drop_prob"):
+        observation_mask((2, 8), 0.5, window_drop_prob=0.5)
+    with pytest.raises(ValueError, match="open_loop_prob"):
+        observation_mask((2, 8), 0.5, open_loop_prob=2.0)
+    with pytest.raises(ValueError, match="open_loop_start"):
+        observation_mask((2, 8), 0.5, open_loop_prob=1.0, open_loop_start=9)
+
+
+# ----------------------------------------------------------------------------- one loss factory
+
+def test_two_scale_imputation_loss_masks_are_real():
+    """The masking probabilities are real arguments (the authors' code hard-codes one)."""
+    model = small_mts3(H=4)
+    obs, act, _ = seq_data(3, 12)
+    gen = torch.Generator().manual_seed(0)
+    full = imputation_loss_fn(model, 1.0, 4, window=4, open_loop_start=4)((obs, act), gen)
+    assert_close(full, prediction_loss(model, obs, act, None))
+    hidden = imputation_loss_fn(model, 0.0, 4, window=4, open_loop_start=4)((obs, act), gen)
+    mask = torch.zeros(3, 12, dtype=torch.bool)
+    mask[:, :4] = True
+    assert_close(hidden, prediction_loss(model, obs, act, mask))
+
+
+def test_loss_factory_on_hip_windows_reaches_every_part_of_the_model():
+    obs, act, valid = seq_data(4, 24)
+    w = make_windows(obs, act, 6, valid)
+    for encoder in ("ba", "recurrent"):
+        hip = small_hip(encoder=encoder)
+        loss = imputation_loss_fn(hip, 0.5, 1, min_var=1e-8)(w.tensors(), torch.Generator().manual_seed(0))
+        assert loss.ndim == 0 and torch.isfinite(loss)
+        loss.backward()
+        for part in (hip.context_encoder, hip.task_transform, hip.acrkn.control, hip.acrkn.transition):
+            grads = [p.grad for p in part.parameters() if p.requires_grad]
+            assert any(gr is not None and float(gr.abs().sum()) > 0 for gr in grads), type(part).__name__
+
+
+def test_floor_variance_only_lifts_tiny_variances():
+    model = lambda x: (x, x.abs())  # noqa: E731
+    x = torch.tensor([0.0, -1e-12, 0.5, -2.0], dtype=DT)
+    mean, var = floor_variance(model, 1e-8)(x)
+    assert torch.equal(mean, x)
+    assert torch.equal(var, torch.tensor([1e-8, 1e-8, 0.5, 2.0], dtype=DT))
+    with pytest.raises(ValueError, match="min_var"):
+        floor_variance(model, 0.0)
+
+
+def test_filtering_loss_is_the_nll_of_the_targets_with_the_drawn_mask():
+    g = torch.Generator().manual_seed(0)
+    obs, targets = torch.randn(3, 10, 2, generator=g, dtype=DT), torch.randn(3, 10, 1, generator=g, dtype=DT)
+    valid = torch.rand(3, 10, generator=g) < 0.8
+    seen = {}
+
+    def filt(o, mask):
+        seen["mask"] = mask
+        return o[..., :1] * 0.5, torch.full_like(o[..., :1], 2.0)
+
+    lf = imputation_loss_fn(filt, 0.6, 2, filtering=True)
+    loss = lf((obs, valid, targets), torch.Generator().manual_seed(5))
+    want_mask = observation_mask((3, 10), 0.6, 2, generator=torch.Generator().manual_seed(5)) & valid
+    assert torch.equal(seen["mask"], want_mask)
+    ref = 0.5 * (math.log(2 * math.pi * 2.0) + (targets - 0.5 * obs[..., :1]) ** 2 / 2.0).mean()
+    torch.testing.assert_close(loss, ref)
+
+
+# ----------------------------------------------------------------------------- fit: budget, patience, stops
+
+def _linear_fit(**kw):
+    X, y = _regression_problem()
+    w = torch.zeros(3, dtype=DT, requires_grad=True)
+    hist = fit(lambda b, g: ((b[0] @ w - b[1]) ** 2).mean(), [w], (X, y), 32, progress=False, **kw)
+    return w, hist
+
+
+def test_fit_stops_at_the_cpu_budget():
+    import time
+
+    t0 = time.process_time()
+    _, hist = _linear_fit(epochs=None, budget_s=0.3)
+    used = time.process_time() - t0
+    assert hist.stopped == "budget" and hist.cpu_time >= 0.3
+    assert used < 0.3 + 1.0  # one batch at most past the budget, plus set-up
+    _, capped = _linear_fit(epochs=2, budget_s=100.0)
+    assert capped.stopped == "epochs" and capped.epochs == 2 and capped.steps == [8, 16]
+
+
+def test_fit_early_stopping_with_patience_and_keep_best_on_parameters():
+    X, y = _regression_problem()
+    w = torch.zeros(3, dtype=DT, requires_grad=True)
+    metric = iter([3.0, 1.0, 2.0, 2.5, 0.5, 0.1])
+    saved = []
+
+    def valid():
+        saved.append(w.detach().clone())
+        return next(metric)
+
+    hist = fit(lambda b, g: ((b[0] @ w - b[1]) ** 2).mean(), [w], (X, y), 64, 6, lr=0.1, valid_fn=valid,
+               patience=2, progress=False)
+    assert hist.stopped == "patience" and hist.epochs == 4 and hist.best_epoch == 1
+    assert hist.valid_loss == [3.0, 1.0, 2.0, 2.5] and hist.best_valid_loss == 1.0
+    assert torch.equal(w.detach(), saved[1])  # keep-best restores a parameter list too
+
+
+def test_fit_stops_at_the_first_non_finite_loss_naming_epoch_and_sequences():
+    g = torch.Generator().manual_seed(0)
+    obs, act = torch.randn(16, 12, 2, generator=g, dtype=DT), torch.randn(16, 12, 2, generator=g, dtype=DT)
+    obs[11, 4, 0] = float("nan")
+    model = _acrkn()
+    for loss in ("mse", "nll"):
+        with pytest.raises(ValueError, match=r"loss_fn: .*epoch 0, batch \d+ \(sequence indices \[.*\b11\b.*\]\).*obs"):
+            fit(imputation_loss_fn(model, 1.0, 1, loss), model, (obs, act), 4, 3, progress=False)
+        assert all(bool(torch.isfinite(p).all()) for p in model.parameters())
+    # a non-finite value that reaches the loss itself: the same stop, the parameters stay finite
+    w = torch.zeros(3, dtype=DT, requires_grad=True)
+    X, y = _regression_problem()
+    y[100] = float("inf")
+    with pytest.raises(ValueError, match=r"loss_fn: non-finite loss .* epoch 0, batch \d+ \(sequence indices .*\b100\b"):
+        fit(lambda b, g: ((b[0] @ w - b[1]) ** 2).mean(), [w], (X, y), 32, 2, progress=False)
+    assert bool(torch.isfinite(w).all())
+
+
+def test_fit_with_a_sampler_and_bad_budget_arguments():
+    w = torch.zeros(1, dtype=DT, requires_grad=True)
+    sample = lambda g: torch.randn(8, generator=g, dtype=DT) + 2.0  # noqa: E731
+    hist = fit(lambda b, g: ((b - w) ** 2).mean(), [w], sample, 8, 30, lr=0.1, max_batches=5, progress=False)
+    assert hist.steps[-1] == 150 and abs(float(w.detach()) - 2.0) < 0.2
+    with pytest.raises(ValueError, match="max_batches"):
+        fit(lambda b, g: ((b - w) ** 2).mean(), [w], sample, 8, 3, progress=False)
+    with pytest.raises(ValueError, match="epochs"):
+        _linear_fit(epochs=None)
+    with pytest.raises(ValueError, match="budget_s"):
+        _linear_fit(epochs=1, budget_s=0.0)
+    with pytest.raises(ValueError, match="patience"):
+        _linear_fit(epochs=1, patience=2)
+
+
+def test_progress_follows_the_environment(monkeypatch):
+    monkeypatch.setenv("PGM_WM_PROGRESS", "0")
+    assert show_progress(None) is False and show_progress(True) is True
+    monkeypatch.setenv("PGM_WM_PROGRESS", "1")
+    assert show_progress(None) is True and show_progress(False) is False
+    monkeypatch.delenv("PGM_WM_PROGRESS")
+    assert show_progress(None) is True
