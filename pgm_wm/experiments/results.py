@@ -50,6 +50,13 @@ def _git(*args: str) -> str | None:
     return out.stdout.strip() if out.returncode == 0 else None
 
 
+def _command() -> str:
+    argv = list(sys.argv)
+    if argv and argv[0].endswith(os.path.join("experiments", "__main__.py")):
+        argv[0] = "-m pgm_wm.experiments"
+    return " ".join(["python", *argv])
+
+
 def provenance(**extra: Any) -> dict[str, Any]:
     """Commit, command, date and machine of the current run, plus ``extra`` entries."""
     import torch
@@ -58,7 +65,7 @@ def provenance(**extra: Any) -> dict[str, Any]:
     info: dict[str, Any] = {
         "commit": _git("rev-parse", "HEAD") or "unknown",
         "dirty": bool(status) if status is not None else None,
-        "command": " ".join([os.path.basename(sys.executable), *sys.argv]),
+        "command": _command(),
         "date": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "machine": {
             "platform": platform.platform(),
