@@ -280,3 +280,192 @@ class TransformerBaseline(nn.Module):
         h = self.norm(h)
         mean, var = self.head(h)
         return mean, var + self.min_var
+
+
+# ----------------------------------------------------------------------------- trivial references
+__all__ += ["last_observed", "RepeatLast", "TrainingMean", "LinearARX"]
+
+
+def last_observed(obs: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
+    r"""The last observation at or before every step and its age: ``(memory, steps)``.
+
+    ``memory[:, t] = obs[:, s]`` with :math:`s = \max\{s \le t : \text{mask}_s\}` (zeros where no
+    step is observed yet) and ``steps[:, t] = t - s + 1`` (the number of steps from that
+    observation to the predicted :math:`o_{t+1}`; ``t + 1`` if there is none). ``obs: (B, T, do)``,
+    ``mask: (B, T)`` -> ``(B, T, do)``, ``(B, T)``.
+    """
+    B, T = obs.shape[:2]
+    t = torch.arange(T, device=obs.device).expand(B, T)
+    if mask is None:
+        return obs, torch.ones(B, T, dtype=obs.dtype, device=obs.device)
+    last = torch.where(mask, t, torch.full_like(t, -1)).cummax(dim=1).values
+    mem = torch.gather(obs, 1, last.clamp_min(0)[..., None].expand_as(obs))
+    mem = mask_observations(mem, last >= 0)
+    return mem, torch.where(last >= 0, t - last + 1, t + 1).to(obs.dtype)
+
+
+def _stat_buffer(x: Tensor | Sequence[float] | None, dim: int, default: float, name: str) -> Tensor:
+    v = torch.full((dim,), default) if x is None else torch.as_tensor(x, dtype=torch.get_default_dtype()).clone()
+    if v.shape != (dim,):
+        raise ValueError(f"{name}: expected shape ({dim},), got {tuple(v.shape)}")
+    return v
+
+
+def _valid_or_all(obs: Tensor, valid: Tensor | None) -> Tensor:
+    from ._checks import check_mask, check_tensor
+
+    check_tensor("obs", obs, 3)
+    if not bool(torch.isfinite(obs if valid is None else obs[valid.bool()]).all()):
+        raise ValueError("obs: contains NaN or infinite values at valid steps")
+    if valid is None:
+        return torch.ones(obs.shape[:2], dtype=torch.bool, device=obs.device)
+    return check_mask("valid", valid, tuple(obs.shape[:2]))
+
+
+class RepeatLast(nn.Module):
+    r"""Repeat-last reference: a random walk, :math:`\hat o_{t+1} = o_s` (the last observation,
+    :func:`last_observed`) with variance :math:`(t - s + 1)\,\sigma^2_\Delta` per dimension.
+
+    ``step_var`` :math:`\sigma^2_\Delta: (do,)` is the mean squared one-step difference of the
+    training data (:meth:`fit`). Actions are ignored. World-model interface
+    ``forward(obs, actions, mask) -> (mean, var)``, index ``t`` predicts :math:`o_{t+1}`.
+    """
+
+    def __init__(self, obs_dim: int, step_var: Tensor | Sequence[float] | None = None) -> None:
+        super().__init__()
+        if obs_dim <= 0:
+            raise ValueError(f"obs_dim: must be positive, got {obs_dim}")
+        self.obs_dim = obs_dim
+        v = _stat_buffer(step_var, obs_dim, 1.0, "step_var")
+        if not bool((v > 0).all()):
+            raise ValueError("step_var: must be positive")
+        self.register_buffer("step_var", v)
+
+    @classmethod
+    def fit(cls, obs: Tensor, valid: Tensor | None = None, min_var: float = 1e-8) -> "RepeatLast":
+        """``step_var`` = mean of :math:`(o_{t+1} - o_t)^2` over the pairs with both steps valid."""
+        v = _valid_or_all(obs, valid)
+        pair = (v[:, 1:] & v[:, :-1]).to(obs.dtype)[..., None]
+        if float(pair.sum()) == 0:
+            raise ValueError("valid: no pair of consecutive valid steps")
+        d2 = torch.where(pair > 0, obs[:, 1:] - obs[:, :-1], torch.zeros((), dtype=obs.dtype)) ** 2
+        var = (d2 * pair).sum((0, 1)) / pair.sum((0, 1))
+        return cls(obs.shape[-1], var.clamp_min(min_var)).to(obs.dtype)
+
+    def forward(self, obs: Tensor, actions: Tensor | None = None, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        mask = check_sequences(obs, actions, mask, self.obs_dim)
+        mem, steps = last_observed(obs, mask)
+        return mem, steps[..., None] * self.step_var.to(obs.dtype)
+
+
+class TrainingMean(nn.Module):
+    r"""Training-mean reference: :math:`\hat o_{t+1} = \bar o` with variance :math:`s^2`, the mean and
+    (biased) variance per dimension of the valid training observations (:meth:`fit`). Ignores every
+    input but its shape."""
+
+    def __init__(self, mean: Tensor | Sequence[float], var: Tensor | Sequence[float]) -> None:
+        super().__init__()
+        m = torch.as_tensor(mean, dtype=torch.get_default_dtype()).clone()
+        if m.ndim != 1 or m.numel() == 0:
+            raise ValueError(f"mean: expected a vector (do,), got shape {tuple(m.shape)}")
+        v = _stat_buffer(var, m.numel(), 1.0, "var")
+        if not bool((v > 0).all()):
+            raise ValueError("var: must be positive")
+        self.obs_dim = m.numel()
+        self.register_buffer("mean", m)
+        self.register_buffer("var", v)
+
+    @classmethod
+    def fit(cls, obs: Tensor, valid: Tensor | None = None, min_var: float = 1e-8) -> "TrainingMean":
+        v = _valid_or_all(obs, valid)
+        x = obs[v]
+        if x.shape[0] == 0:
+            raise ValueError("valid: no valid step")
+        return cls(x.mean(0), x.var(0, unbiased=False).clamp_min(min_var)).to(obs.dtype)
+
+    def forward(self, obs: Tensor, actions: Tensor | None = None, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        check_sequences(obs, actions, mask, self.obs_dim)
+        shape = obs.shape
+        return self.mean.to(obs.dtype).expand(shape).clone(), self.var.to(obs.dtype).expand(shape).clone()
+
+
+class LinearARX(nn.Module):
+    r"""Linear ARX reference of order :math:`p`, fit in closed form (:meth:`fit`):
+
+    .. math:: \hat o_{t+1} = c + \sum_{i=0}^{p-1} A_i\, m_{t-i} + \sum_{i=0}^{p-1} B_i\, a_{t-i},
+
+    with the memory :math:`m_t` = the observation if observed, else the model's own previous
+    prediction (the feedback rule of Eq. acrkn-diff), so it predicts open-loop through gaps.
+    Before the sequence starts, the lags are copies of the first memory / action. Variance: the
+    per-dimension mean squared one-step residual of the fit (a one-step variance; it does not
+    grow over an open loop). ``weight: (do, p (do + da))`` acts on
+    :math:`x_t = [m_t, \dots, m_{t-p+1}, a_t, \dots, a_{t-p+1}]`. An unfitted model (zero
+    weights) predicts :math:`c = 0`.
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int, order: int = 2) -> None:
+        super().__init__()
+        if obs_dim <= 0 or action_dim < 0:
+            raise ValueError(f"obs_dim: need obs_dim > 0 and action_dim >= 0, got {obs_dim}, {action_dim}")
+        if not isinstance(order, int) or order <= 0:
+            raise ValueError(f"order: must be a positive int, got {order!r}")
+        self.obs_dim, self.action_dim, self.order = obs_dim, action_dim, order
+        self.register_buffer("weight", torch.zeros(obs_dim, order * (obs_dim + action_dim)))
+        self.register_buffer("bias", torch.zeros(obs_dim))
+        self.register_buffer("var", torch.ones(obs_dim))
+
+    @staticmethod
+    def _lags(x: Tensor, order: int) -> Tensor:
+        """``x: (B, T, d)`` -> ``(B, T, order d)`` with ``[x_t, x_{t-1}, ...]``, padded with ``x_0``."""
+        pad = torch.cat([x[:, :1].expand(-1, order - 1, -1), x], 1)
+        return torch.cat([pad[:, order - 1 - i: pad.shape[1] - i] for i in range(order)], -1)
+
+    @classmethod
+    def fit(cls, obs: Tensor, actions: Tensor, order: int = 2, ridge: float = 1e-6,
+            valid: Tensor | None = None) -> "LinearARX":
+        r"""Ridge least squares: :math:`\min_{W, c} \sum_t \|o_{t+1} - W x_t - c\|^2 + \lambda\|W\|_F^2`
+        over every :math:`t \ge p - 1` whose steps :math:`t-p+1 .. t+1` are all valid (the bias is not
+        penalized), solved from the normal equations; ``var`` is the mean squared residual."""
+        v = _valid_or_all(obs, valid)
+        check_sequences(obs, actions, None)
+        if ridge < 0:
+            raise ValueError(f"ridge: must be >= 0, got {ridge}")
+        model = cls(obs.shape[-1], actions.shape[-1], order).to(obs.dtype)
+        T = obs.shape[1]
+        if T <= order:
+            raise ValueError(f"obs: need more than order={order} steps, got {T}")
+        o = mask_observations(obs, v)
+        X = torch.cat([cls._lags(o, order), cls._lags(actions, order)], -1)[:, order - 1:T - 1]
+        Y = o[:, order:]
+        ok = torch.stack([v[:, s:T - order + s] for s in range(order + 1)], 0).all(0)
+        X, Y = X[ok], Y[ok]
+        if X.shape[0] == 0:
+            raise ValueError("valid: no fully valid window of order + 1 steps")
+        X1 = torch.cat([X, torch.ones(X.shape[0], 1, dtype=X.dtype)], 1)
+        reg = torch.full((X1.shape[1],), float(ridge), dtype=X.dtype)
+        reg[-1] = 0.0
+        sol = torch.linalg.solve(X1.T @ X1 + torch.diag(reg), X1.T @ Y)  # (k + 1, do)
+        with torch.no_grad():
+            model.weight.copy_(sol[:-1].T)
+            model.bias.copy_(sol[-1])
+            model.var.copy_(((Y - X1 @ sol) ** 2).mean(0).clamp_min(1e-8))
+        return model
+
+    def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        mask = check_sequences(obs, actions, mask, self.obs_dim, self.action_dim)
+        W, c = self.weight.to(obs.dtype), self.bias.to(obs.dtype)
+        p, do = self.order, self.obs_dim
+        var = self.var.to(obs.dtype).expand(obs.shape)
+        a_lags = self._lags(actions, p)
+        Wo, Wa = W[:, :p * do], W[:, p * do:]
+        if mask is None or bool(mask.all()):  # no feedback: one matrix product
+            return self._lags(obs, p) @ Wo.T + a_lags @ Wa.T + c, var
+        obs = mask_observations(obs, mask)
+        hist: list[Tensor] = []
+        means, last = [], None
+        for t in range(obs.shape[1]):
+            mem = DifferenceReadout.memory(obs[:, t], mask[:, t], last)
+            hist = [mem] * p if not hist else [mem] + hist[:p - 1]
+            last = torch.cat(hist, -1) @ Wo.T + a_lags[:, t] @ Wa.T + c
+            means.append(last)
+        return torch.stack(means, 1), var

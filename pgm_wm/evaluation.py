@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from ._checks import check_last_dims, check_mask, check_tensor, mask_observations
-from .datasets.windows import HiPWindows, make_windows
+from .datasets.windows import HiPWindows, make_windows, pad_to_windows
 from .hiprssm import HiPRSSM
 from .metrics import denormalize, denormalize_var, rmse, sliding_window_nll, sliding_window_rmse
 from .training import observation_mask
@@ -33,6 +33,7 @@ __all__ = [
     "OpenLoopResult",
     "evaluate_open_loop",
     "infer_trajectory",
+    "trajectory_world_model",
     "predict_windows",
     "window_rmse",
     "evaluate_windows",
@@ -197,6 +198,27 @@ def infer_trajectory(model: HiPRSSM, obs: Tensor, actions: Tensor, window_len: i
     mean, var, t_mean, t_var = model.predict(w.obs, w.actions, w.valid, w.context, w.context_mask)
     shape = (n, n_win * window_len, obs.shape[-1])
     return (mean.reshape(shape), var.reshape(shape), t_mean.reshape(n, n_win, -1), t_var.reshape(n, n_win, -1))
+
+
+def trajectory_world_model(model: HiPRSSM, window_len: int, diff_shift: Tensor | None = None,
+                           diff_scale: Tensor | None = None) -> WorldModel:
+    r"""A HiP-RSSM run window by window (:func:`infer_trajectory`) as a plain world model
+    ``f(obs, actions, mask) -> (mean, var)`` over sequences of any length: the inputs are padded to
+    whole windows (:func:`pgm_wm.datasets.windows.pad_to_windows`; padded steps are unobserved) and
+    the outputs cut back, so it can be scored by :func:`evaluate_open_loop` like any other model."""
+    if not isinstance(window_len, int) or window_len < 2:
+        raise ValueError(f"window_len: must be an int >= 2, got {window_len!r}")
+
+    def world_model(obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        check_tensor("obs", obs, 3)
+        T = obs.shape[1]
+        valid = torch.ones(obs.shape[:2], dtype=torch.bool, device=obs.device) if mask is None else \
+            check_mask("mask", mask, tuple(obs.shape[:2]))
+        o, a, v = (pad_to_windows(x, window_len) for x in (obs, actions, valid))
+        mean, var, _, _ = infer_trajectory(model, o, a, window_len, v, diff_shift, diff_scale)
+        return mean[:, :T], var[:, :T]
+
+    return world_model
 
 
 @torch.no_grad()

@@ -226,3 +226,21 @@ def test_evaluation_bad_inputs():
         evaluate_open_loop(CountingModel(), obs, obs, 5, obs_mean=torch.zeros(2))
     with pytest.raises(ValueError, match="n_components"):
         latent_pca(torch.randn(4, 3), 5)
+
+
+def test_trajectory_world_model_pads_to_windows_and_equals_infer_trajectory():
+    from pgm_wm.evaluation import trajectory_world_model
+
+    obs, act, valid = seq_data(2, 23, p_valid=0.8)
+    hip = small_hip()
+    shift, scale = torch.full((3,), 0.1, dtype=DT), torch.full((3,), 0.5, dtype=DT)
+    f = trajectory_world_model(hip, 5, shift, scale)
+    with torch.no_grad():
+        mean, var = f(obs, act, valid)
+    assert mean.shape == var.shape == obs.shape
+    pad = lambda x: torch.cat([x, torch.zeros_like(x[:, :2])], 1)  # noqa: E731  23 -> 25 steps
+    ref_mean, ref_var, _, _ = infer_trajectory(hip, pad(obs), pad(act), 5, pad(valid), shift, scale)
+    assert_close(mean, ref_mean[:, :23])
+    assert_close(var, ref_var[:, :23])
+    res = evaluate_open_loop(f, obs, act, 10)
+    assert res.mean.shape == (2, 13, 3) and bool(torch.isfinite(res.rmse).all())
