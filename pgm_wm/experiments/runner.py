@@ -44,6 +44,11 @@ __all__ = ["Protocol", "Splits", "ModelSpec", "Experiment", "train_model", "scor
 class Protocol:
     """Training and evaluation settings shared by every model of one experiment.
 
+    The training mask (:func:`pgm_wm.training.observation_mask`) keeps each step with
+    ``keep_prob``, always the first ``context_len`` steps, hides whole windows of ``mask_window``
+    steps with a probability drawn in ``[0, max_window_drop]`` per batch, and with
+    ``open_loop_prob`` hides everything after the context.
+
     ``horizons`` are the steps ``k`` reported (each ``<= horizon``); ``eval_stride`` the step
     between test windows; ``valid_stride`` between validation windows.
     """
@@ -56,6 +61,8 @@ class Protocol:
     batch_size: int = 32
     keep_prob: float = 0.25
     open_loop_prob: float = 0.5
+    mask_window: int | None = None
+    max_window_drop: float = 0.0
     lr: float = 3e-3
     patience: int | None = None
 
@@ -157,7 +164,8 @@ def train_model(exp: Experiment, name: str, seed: int, budget_s: float) -> tuple
         return model.eval(), {"cpu_s": round(time.process_time() - start, 2), "epochs": 0}
     p = exp.protocol
     obs, act, val = splits.normalized("train")
-    loss_fn = imputation_loss_fn(model, p.keep_prob, p.context_len, "nll", p.open_loop_prob)
+    loss_fn = imputation_loss_fn(model, p.keep_prob, p.context_len, "nll", p.open_loop_prob,
+                                 window=p.mask_window, max_window_drop=p.max_window_drop)
     hist = fit(loss_fn, model, (obs, act, val), p.batch_size, lr=p.lr, seed=seed,
                valid_fn=_valid_score(model, splits, p), progress=False, crop_len=p.window,
                budget_s=budget_s, patience=p.patience, desc=name)
