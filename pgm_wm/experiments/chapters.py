@@ -39,6 +39,19 @@ def _reference_models() -> dict[str, ModelSpec]:
     }
 
 
+def _oracle_models(dataset: str) -> dict[str, ModelSpec]:
+    """The physics oracle of a simulated dataset, with the true and with nominal parameters: it
+    starts from the simulator's true state at the end of the context and applies the recorded
+    actions (:func:`pgm_wm.datasets.oracles.oracle_windows`)."""
+    from ..datasets.oracles import oracle_windows
+
+    def row(params: str) -> ModelSpec:
+        return ModelSpec(oracle=lambda p: oracle_windows(dataset, "test", p.context_len, p.horizon, p.eval_stride,
+                                                         params=params))
+
+    return {"physics oracle (true parameters)": row("true"), "physics oracle (nominal parameters)": row("nominal")}
+
+
 def _readout(s: Splits) -> dict:
     shift, scale = difference_scaling(s.train.stats)
     return dict(diff_shift=shift, diff_scale=scale)
@@ -48,7 +61,7 @@ def _dims(s: Splits) -> tuple[int, int]:
     return s.train.obs_dim, s.train.action_dim
 
 
-def ch4_experiment(dataset: str = "hysteresis_arm") -> Experiment:
+def ch4_experiment(dataset: str = "memory_arm", oracle: bool = True) -> Experiment:
     """Chapter 4: ac-RKN variants (difference / absolute readout, norm-bounded A) against the
     RKN with actions as observations, LSTM, GRU, FFNN and the reference rows; open-loop
     prediction 1–50 steps after a 50-step context (the chapter's sizes, :mod:`pgm_wm.builders`)."""
@@ -62,6 +75,8 @@ def ch4_experiment(dataset: str = "hysteresis_arm") -> Experiment:
         "FFNN": ModelSpec(lambda s: build_baseline("ffnn", *_dims(s), **_readout(s))),
     }
     models.update(_reference_models())
+    if oracle:
+        models.update(_oracle_models(dataset))
     protocol = Protocol(context_len=50, horizon=50, horizons=(1, 5, 10, 25, 50), eval_stride=50,
                         valid_stride=100, batch_size=32, keep_prob=0.25, open_loop_prob=0.5)
     return Experiment(f"ch4_{dataset}", f"Chapter 4, open-loop prediction on {dataset}", lambda: _splits(dataset),
@@ -74,7 +89,7 @@ def _absolute(model: nn.Module) -> nn.Module:
     return model
 
 
-def ch6_experiment(dataset: str = "drift_arm", window: int = 25) -> Experiment:
+def ch6_experiment(dataset: str = "slow_payload_arm", window: int = 25) -> Experiment:
     """Chapter 6: MTS3 (window ``H``) against its fast level alone (an ac-RKN with a constant
     transition and no task), the Chapter 4 ac-RKN, LSTM, GRU, a Transformer and the reference rows;
     open-loop prediction up to 8 s (200 steps at 25 Hz) after a context of two windows, trained on
@@ -89,6 +104,7 @@ def ch6_experiment(dataset: str = "drift_arm", window: int = 25) -> Experiment:
         "Transformer": ModelSpec(lambda s: build_baseline("transformer", *_dims(s))),
     }
     models.update(_reference_models())
+    models.update(_oracle_models(dataset))
     protocol = Protocol(context_len=2 * window, horizon=200, horizons=(25, 50, 100, 200), eval_stride=250,
                         valid_stride=500, batch_size=48, keep_prob=0.85, open_loop_prob=0.5,
                         mask_window=window, max_window_drop=0.75, lr=1e-2)
@@ -99,5 +115,6 @@ def ch6_experiment(dataset: str = "drift_arm", window: int = 25) -> Experiment:
 
 EXPERIMENTS: dict[str, Callable[[], Experiment]] = {
     "ch4": ch4_experiment,
+    "ch4_real": lambda: ch4_experiment("pam_arm", oracle=False),
     "ch6": ch6_experiment,
 }

@@ -37,7 +37,8 @@ from .results import provenance, save_results
 if TYPE_CHECKING:  # pragma: no cover
     from ..datasets import SequenceData
 
-__all__ = ["Protocol", "Splits", "ModelSpec", "Experiment", "train_model", "score", "run_experiment"]
+__all__ = ["Protocol", "Splits", "ModelSpec", "Experiment", "train_model", "test_windows", "score", "score_oracle",
+           "run_experiment"]
 
 
 @dataclass(frozen=True)
@@ -98,11 +99,20 @@ class ModelSpec:
     ``build(splits) -> model`` with the world-model interface ``model(obs, actions, mask)``.
     With ``trained=False`` the model is complete when built (a reference row fitted in closed
     form inside ``build``, e.g. :meth:`pgm_wm.baselines.LinearARX.fit`); it is deterministic and
-    scored once.
+    scored once. ``oracle(protocol) -> (mean, target)`` instead gives predictions directly, in
+    original units, for the test windows (the physics oracle of a simulated dataset,
+    :func:`pgm_wm.datasets.oracles.oracle_windows`); it has no predictive variance, so no NLL.
     """
 
-    build: Callable[[Splits], nn.Module]
+    build: Callable[[Splits], nn.Module] | None = None
     trained: bool = True
+    oracle: Callable[[Protocol], tuple[Tensor, Tensor]] | None = None
+
+    def __post_init__(self) -> None:
+        if (self.build is None) == (self.oracle is None):
+            raise ValueError("build: give exactly one of build and oracle")
+        if self.oracle is not None:
+            object.__setattr__(self, "trained", False)
 
 
 @dataclass(frozen=True)
@@ -173,6 +183,26 @@ def train_model(exp: Experiment, name: str, seed: int, budget_s: float) -> tuple
                           "best_valid": hist.best_valid_loss}
 
 
+def test_windows(splits: Splits, protocol: Protocol) -> tuple[Tensor, Tensor]:
+    """The normalized test windows ``(obs, actions)`` every model is scored on."""
+    obs, act, val = splits.normalized("test")
+    return _windows(obs, act, val, protocol.window, protocol.eval_stride)
+
+
+def score_oracle(spec: ModelSpec, splits: Splits, protocol: Protocol) -> np.ndarray:
+    """Squared errors ``(len(horizons), n_windows)`` of an oracle row, on the same windows and
+    targets as :func:`score` (checked)."""
+    assert spec.oracle is not None
+    mean, target = spec.oracle(protocol)
+    wo, _ = test_windows(splits, protocol)
+    ours = splits.train.denormalize_obs(wo[:, protocol.context_len:])
+    if tuple(target.shape) != tuple(ours.shape) or not torch.allclose(target.to(ours.dtype), ours, atol=1e-4):
+        raise ValueError("oracle: its targets differ from the runner's test windows")
+    idx = [h - 1 for h in protocol.horizons]
+    err = (mean.to(ours.dtype) - ours)[:, idx]
+    return err.square().mean(-1).T.double().numpy()
+
+
 def score(model: nn.Module, splits: Splits, protocol: Protocol) -> tuple[np.ndarray, np.ndarray]:
     """Per horizon and test window: squared error (mean over dims, original units) and NLL.
 
@@ -180,8 +210,7 @@ def score(model: nn.Module, splits: Splits, protocol: Protocol) -> tuple[np.ndar
     a variance that is not positive and finite) is replaced by the training mean with unit
     variance (normalized units) before scoring, so it is penalised but stays finite."""
     p = protocol
-    obs, act, val = splits.normalized("test")
-    wo, wa = _windows(obs, act, val, p.window, p.eval_stride)
+    wo, wa = test_windows(splits, p)
     mean, var = _open_loop(model, wo, wa, p)
     ok = torch.isfinite(mean) & torch.isfinite(var) & (var > 0)
     mean = torch.where(ok, mean, torch.zeros_like(mean))
@@ -199,11 +228,13 @@ _FORKED_EXPERIMENT: Experiment | None = None  # set before forking workers (lamb
 
 
 def _run_one(task: tuple[str, int, float], exp: Experiment | None = None
-             ) -> tuple[str, int, np.ndarray, np.ndarray, dict]:
+             ) -> tuple[str, int, np.ndarray, np.ndarray | None, dict]:
     name, seed, budget_s = task
     exp = _FORKED_EXPERIMENT if exp is None else exp
     assert exp is not None
     torch.set_num_threads(1)
+    if exp.models[name].oracle is not None:
+        return name, seed, score_oracle(exp.models[name], exp.load(), exp.protocol), None, {"oracle": True}
     model, info = train_model(exp, name, seed, budget_s)
     sq, nll = score(model, exp.load(), exp.protocol)
     return name, seed, sq, nll, info
@@ -240,7 +271,7 @@ def run_experiment(exp: Experiment, seeds: Sequence[int], budget_s: float, out_p
             out = _run_one(task, exp)
             log(f"{out[0]:>28} seed {out[1]}: {out[4]}")
             outs.append(out)
-    per: dict[str, dict[int, tuple[np.ndarray, np.ndarray, dict]]] = {n: {} for n in names}
+    per: dict[str, dict[int, tuple[np.ndarray, np.ndarray | None, dict]]] = {n: {} for n in names}
     for name, seed, sq, nll, info in outs:
         per[name][seed] = (sq, nll, info)
     model_entries: dict[str, Any] = {}
@@ -250,7 +281,7 @@ def run_experiment(exp: Experiment, seeds: Sequence[int], budget_s: float, out_p
             runs = runs * len(seeds)
         model_entries[n] = {
             "sq_err": np.stack([r[0] for r in runs]),
-            "nll": np.stack([r[1] for r in runs]),
+            "nll": None if runs[0][1] is None else np.stack([r[1] for r in runs]),
             "trained": exp.models[n].trained,
             "runs": [r[2] for r in runs],
         }
