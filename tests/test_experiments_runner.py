@@ -85,3 +85,20 @@ def test_protocol_checks():
         Protocol(context_len=5, horizon=10, horizons=(11,), eval_stride=5)
     with pytest.raises(ValueError, match="^context_len"):
         Protocol(context_len=0, horizon=10, horizons=(1,), eval_stride=5)
+
+
+def test_oracle_rows_are_scored_on_the_runner_windows():
+    from pgm_wm.experiments.runner import score_oracle, test_windows
+
+    def perfect(p: Protocol):
+        wo, _ = test_windows(SPLITS, p)
+        target = SPLITS.train.denormalize_obs(wo[:, p.context_len:])
+        return target + 0.1, target
+
+    sq = score_oracle(ModelSpec(oracle=perfect), SPLITS, PROTOCOL)
+    np.testing.assert_allclose(sq, 0.01, rtol=1e-4)                      # a constant error of 0.1
+    shifted = ModelSpec(oracle=lambda p: tuple(x[1:] for x in perfect(p)))   # one window missing
+    with pytest.raises(ValueError, match="^oracle"):
+        score_oracle(shifted, SPLITS, PROTOCOL)
+    with pytest.raises(ValueError, match="^build"):
+        ModelSpec()
