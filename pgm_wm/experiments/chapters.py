@@ -1,0 +1,120 @@
+"""The chapters' experiments: which data, which models, which protocol.
+
+Each function returns a :class:`pgm_wm.experiments.runner.Experiment`; the command line
+(``python -m pgm_wm.experiments NAME``) runs it for several seeds and writes ``results/NAME.json``.
+Model sizes are the chapters' notebook defaults; the budget per model is set on the command line.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import Callable
+
+from torch import nn
+
+from ..acrkn import difference_scaling
+from ..builders import build_acrkn, build_baseline, build_hierarchical_mts3, build_mts3
+from ..datasets import load
+from .runner import Experiment, ModelSpec, Protocol, Splits
+
+__all__ = ["EXPERIMENTS", "ch4_experiment", "ch6_experiment"]
+
+
+@lru_cache(maxsize=None)
+def _splits(name: str) -> Splits:
+    return Splits(*(load(name, s) for s in ("train", "valid", "test")))
+
+
+def _reference_models() -> dict[str, ModelSpec]:
+    """The reference rows every results table has (fitted in closed form on the training split)."""
+    from ..baselines import LinearARX, RepeatLast, TrainingMean
+
+    def fitted(make: Callable[..., nn.Module]) -> ModelSpec:
+        return ModelSpec(lambda s: make(*s.normalized("train")), trained=False)
+
+    return {
+        "repeat last": fitted(lambda obs, act, valid: RepeatLast.fit(obs, valid)),
+        "training mean": fitted(lambda obs, act, valid: TrainingMean.fit(obs, valid)),
+        "linear ARX (order 5)": fitted(lambda obs, act, valid: LinearARX.fit(obs, act, order=5, valid=valid)),
+    }
+
+
+def _oracle_models(dataset: str) -> dict[str, ModelSpec]:
+    """The physics oracle of a simulated dataset, with the true and with nominal parameters: it
+    starts from the simulator's true state at the end of the context and applies the recorded
+    actions (:func:`pgm_wm.datasets.oracles.oracle_windows`)."""
+    from ..datasets.oracles import oracle_windows
+
+    def row(params: str) -> ModelSpec:
+        return ModelSpec(oracle=lambda p: oracle_windows(dataset, "test", p.context_len, p.horizon, p.eval_stride,
+                                                         params=params))
+
+    return {"physics oracle (true parameters)": row("true"), "physics oracle (nominal parameters)": row("nominal")}
+
+
+def _readout(s: Splits) -> dict:
+    shift, scale = difference_scaling(s.train.stats)
+    return dict(diff_shift=shift, diff_scale=scale)
+
+
+def _dims(s: Splits) -> tuple[int, int]:
+    return s.train.obs_dim, s.train.action_dim
+
+
+def ch4_experiment(dataset: str = "memory_arm", oracle: bool = True) -> Experiment:
+    """Chapter 4: ac-RKN variants (difference / absolute readout, norm-bounded A) against the
+    RKN with actions as observations, LSTM, GRU, FFNN and the reference rows; open-loop
+    prediction 1–50 steps after a 50-step context (the chapter's sizes, :mod:`pgm_wm.builders`)."""
+    models: dict[str, ModelSpec] = {
+        "ac-RKN (difference readout)": ModelSpec(lambda s: build_acrkn(*_dims(s), **_readout(s))),
+        "ac-RKN (absolute readout)": ModelSpec(lambda s: _absolute(build_acrkn(*_dims(s), **_readout(s)))),
+        "ac-RKN, ‖A‖≤1": ModelSpec(lambda s: build_acrkn(*_dims(s), bounded=True, **_readout(s))),
+        "RKN (actions as obs.)": ModelSpec(lambda s: build_baseline("rkn_actions_as_obs", *_dims(s), **_readout(s))),
+        "LSTM": ModelSpec(lambda s: build_baseline("lstm", *_dims(s), **_readout(s))),
+        "GRU": ModelSpec(lambda s: build_baseline("gru", *_dims(s), **_readout(s))),
+        "FFNN": ModelSpec(lambda s: build_baseline("ffnn", *_dims(s), **_readout(s))),
+    }
+    models.update(_reference_models())
+    if oracle:
+        models.update(_oracle_models(dataset))
+    protocol = Protocol(context_len=50, horizon=50, horizons=(1, 5, 10, 25, 50), eval_stride=50,
+                        valid_stride=100, batch_size=32, keep_prob=0.25, open_loop_prob=0.5)
+    return Experiment(f"ch4_{dataset}", f"Chapter 4, open-loop prediction on {dataset}", lambda: _splits(dataset),
+                      models, protocol, units="mrad", scale=1e3)
+
+
+def _absolute(model: nn.Module) -> nn.Module:
+    """The same ac-RKN with the absolute readout (the decoder predicts the observation itself)."""
+    model.readout.predict_differences = False
+    return model
+
+
+def ch6_experiment(dataset: str = "slow_payload_arm", window: int = 25) -> Experiment:
+    """Chapter 6: MTS3 (window ``H``) against its fast level alone (an ac-RKN with a constant
+    transition and no task), the Chapter 4 ac-RKN, LSTM, GRU, a Transformer and the reference rows;
+    open-loop prediction up to 8 s (200 steps at 25 Hz) after a context of two windows, trained on
+    crops of context + horizon with two-scale imputation (the same masks for every model)."""
+    hid, m = (32,), 8
+    models: dict[str, ModelSpec] = {
+        f"MTS3 (H = {window})": ModelSpec(lambda s: build_mts3(*_dims(s), m, window, hid)),
+        "MTS3 fast level alone": ModelSpec(lambda s: build_hierarchical_mts3(*_dims(s), m, [], hid)),
+        "ac-RKN (Chapter 4)": ModelSpec(lambda s: _absolute(build_acrkn(*_dims(s), latent_obs_dim=m, hidden=32))),
+        "LSTM": ModelSpec(lambda s: build_baseline("lstm", *_dims(s), hidden=32, predict_differences=False)),
+        "GRU": ModelSpec(lambda s: build_baseline("gru", *_dims(s), hidden=32, predict_differences=False)),
+        "Transformer": ModelSpec(lambda s: build_baseline("transformer", *_dims(s))),
+    }
+    models.update(_reference_models())
+    models.update(_oracle_models(dataset))
+    protocol = Protocol(context_len=2 * window, horizon=200, horizons=(25, 50, 100, 200), eval_stride=250,
+                        valid_stride=500, batch_size=48, keep_prob=0.85, open_loop_prob=0.5,
+                        mask_window=window, max_window_drop=0.75, lr=1e-2)
+    return Experiment(f"ch6_{dataset}", f"Chapter 6, long-horizon open-loop prediction on {dataset}",
+                      lambda: _splits(dataset), models, protocol, units="rad", scale=1.0,
+                      notes={"window": window, "dt_s": 0.04})
+
+
+EXPERIMENTS: dict[str, Callable[[], Experiment]] = {
+    "ch4": ch4_experiment,
+    "ch4_real": lambda: ch4_experiment("pam_arm", oracle=False),
+    "ch6": ch6_experiment,
+}

@@ -1,0 +1,206 @@
+"""Multi-seed results files: what was run, where, with which budget, and what came out.
+
+A results file (JSON, under ``results/``) holds, for one chapter's experiment:
+
+* ``provenance``: the git commit (and whether the tree was dirty), the command, the date, the
+  machine (platform, CPU count, torch version and thread count), the training budget in CPU
+  seconds per model, the seeds, and the wall time of the whole run;
+* ``horizons``: the prediction horizons ``k`` (steps) the errors are reported at;
+* ``models``: for every model, per seed, per horizon, per test window, the mean squared error
+  (in the units named by ``units`` after multiplying by ``scale``) and optionally the NLL.
+
+Everything a chapter states about the comparison is *computed* from this file
+(:func:`summary_table`, :func:`conclusions`), never typed: see :mod:`pgm_wm.experiments.stats`
+for the intervals.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import platform
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from .stats import Interval, mean_interval, paired_ratio, rmse_interval
+
+__all__ = [
+    "provenance",
+    "save_results",
+    "load_results",
+    "summarize",
+    "summary_table",
+    "conclusions",
+    "provenance_text",
+]
+
+_REPO = Path(__file__).resolve().parents[2]
+
+
+def _git(*args: str) -> str | None:
+    try:
+        out = subprocess.run(["git", *args], cwd=_REPO, capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() if out.returncode == 0 else None
+
+
+def _command() -> str:
+    argv = list(sys.argv)
+    if argv and argv[0].endswith(os.path.join("experiments", "__main__.py")):
+        argv[0] = "-m pgm_wm.experiments"
+    return " ".join(["python", *argv])
+
+
+def provenance(**extra: Any) -> dict[str, Any]:
+    """Commit, command, date and machine of the current run, plus ``extra`` entries."""
+    import torch
+
+    status = _git("status", "--porcelain", "--untracked-files=no")
+    info: dict[str, Any] = {
+        "commit": _git("rev-parse", "HEAD") or "unknown",
+        "dirty": bool(status) if status is not None else None,
+        "command": _command(),
+        "date": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "machine": {
+            "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine(),
+            "cpu_count": os.cpu_count(),
+            "python": platform.python_version(),
+            "torch": torch.__version__,
+            "torch_threads": torch.get_num_threads(),
+        },
+    }
+    info.update(extra)
+    return info
+
+
+def _check_results(results: Mapping[str, Any]) -> None:
+    for key in ("provenance", "horizons", "models"):
+        if key not in results:
+            raise ValueError(f"results: missing key {key!r}")
+    horizons = list(results["horizons"])
+    if not horizons:
+        raise ValueError("results: 'horizons' is empty")
+    n_windows = None
+    for name, entry in results["models"].items():
+        sq = np.asarray(entry.get("sq_err"), dtype=np.float64)
+        if sq.ndim != 3 or sq.shape[1] != len(horizons):
+            raise ValueError(f"results: model {name!r} needs sq_err of shape (seeds, {len(horizons)}, windows), "
+                             f"got {sq.shape}")
+        if n_windows is None:
+            n_windows = sq.shape[2]
+        elif sq.shape[2] != n_windows:
+            raise ValueError(f"results: model {name!r} was scored on {sq.shape[2]} windows, others on {n_windows}")
+
+
+def save_results(path: str | os.PathLike, results: Mapping[str, Any]) -> Path:
+    """Write ``results`` as JSON (numbers rounded to 7 significant digits to keep files small)."""
+    _check_results(results)
+
+    def clean(x: Any) -> Any:
+        if isinstance(x, Mapping):
+            return {str(k): clean(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [clean(v) for v in x]
+        if isinstance(x, np.ndarray):
+            return clean(x.tolist())
+        if isinstance(x, (float, np.floating)):
+            return float(f"{float(x):.7g}")
+        if isinstance(x, np.integer):
+            return int(x)
+        return x
+
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(json.dumps(clean(results), indent=1) + "\n")
+    return p
+
+
+def load_results(path: str | os.PathLike) -> dict[str, Any]:
+    """Read and check a results file written by :func:`save_results`."""
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"path: no results file at {p} (regenerate it with `python -m pgm_wm.experiments`)")
+    results = json.loads(p.read_text())
+    _check_results(results)
+    return results
+
+
+def summarize(results: Mapping[str, Any], n_boot: int = 2000, seed: int = 0) -> dict[str, dict[str, list[Interval]]]:
+    """Per model: ``{"rmse": [Interval per horizon], "nll": [...]}`` (``nll`` only if stored).
+
+    RMSEs are in the file's units (``scale`` applied)."""
+    scale = float(results.get("scale", 1.0))
+    out: dict[str, dict[str, list[Interval]]] = {}
+    for name, entry in results["models"].items():
+        sq = np.asarray(entry["sq_err"], dtype=np.float64) * scale**2
+        rows = {"rmse": [rmse_interval(sq[:, i], n_boot, seed=seed) for i in range(sq.shape[1])]}
+        if entry.get("nll") is not None:
+            nll = np.asarray(entry["nll"], dtype=np.float64)
+            rows["nll"] = [mean_interval(nll[:, i], n_boot, seed=seed) for i in range(nll.shape[1])]
+        out[name] = rows
+    return out
+
+
+def summary_table(results: Mapping[str, Any], summary: Mapping[str, Any] | None = None,
+                  fmt: str = ".3g") -> str:
+    """Markdown table: one row per model, ``RMSE [95 % interval]`` per horizon, then the NLL
+    averaged over horizons where stored."""
+    from ..plotting import markdown_table
+
+    summary = summarize(results) if summary is None else summary
+    horizons = list(results["horizons"])
+    has_nll = any("nll" in s for s in summary.values())
+    header = ["model"] + [f"k = {h}" for h in horizons] + (["NLL (mean over k)"] if has_nll else [])
+    rows = []
+    for name, s in summary.items():
+        row = [name] + [iv.format(fmt) for iv in s["rmse"]]
+        if has_nll:
+            row.append(format(float(np.mean([iv.point for iv in s["nll"]])), fmt) if "nll" in s else "–")
+        rows.append(row)
+    return markdown_table(rows, header)
+
+
+def conclusions(results: Mapping[str, Any], candidates: Sequence[str] | None = None, n_boot: int = 2000,
+                seed: int = 0) -> list[str]:
+    """One computed sentence per horizon: which model has the lowest RMSE, its ratio to the
+    runner-up with a paired interval, and whether the ordering survives that interval.
+
+    ``candidates`` restricts the comparison (default: every model in the file)."""
+    names = list(results["models"]) if candidates is None else list(candidates)
+    if len(names) < 2:
+        raise ValueError("candidates: need at least two models to compare")
+    for n in names:
+        if n not in results["models"]:
+            raise ValueError(f"candidates: unknown model {n!r}")
+    sq = {n: np.asarray(results["models"][n]["sq_err"], dtype=np.float64) for n in names}
+    sentences = []
+    for i, h in enumerate(results["horizons"]):
+        order = sorted(names, key=lambda n: float(sq[n][:, i].mean()))
+        best, second = order[0], order[1]
+        ratio = paired_ratio(sq[best][:, i], sq[second][:, i], n_boot, seed=seed)
+        verdict = ("the whole interval lies below 1, so this ordering survives the intervals"
+                   if ratio.hi < 1.0 else "the interval contains 1, so the two are not distinguishable here")
+        sentences.append(f"At k = {h}, {best} has the lowest RMSE; its ratio to the runner-up {second} is "
+                         f"{ratio.format('.3f')} ({verdict}).")
+    return sentences
+
+
+def provenance_text(results: Mapping[str, Any]) -> str:
+    """One paragraph describing how and where the file was produced."""
+    p = results["provenance"]
+    mach = p.get("machine", {})
+    commit = str(p.get("commit", "unknown"))[:10] + (" (uncommitted changes)" if p.get("dirty") else "")
+    seeds = p.get("seeds", [])
+    n_win = np.asarray(next(iter(results["models"].values()))["sq_err"]).shape[2]
+    return (f"Produced by `{p.get('command', '?')}` on {p.get('date', '?')} at commit {commit}, on "
+            f"{mach.get('cpu_count', '?')} CPUs ({mach.get('platform', '?')}, torch {mach.get('torch', '?')}, "
+            f"{mach.get('torch_threads', '?')} thread(s)); {len(seeds)} seeds, a training budget of "
+            f"{p.get('budget_cpu_s', '?')} CPU seconds per model, {n_win} test windows; the whole run took "
+            f"{p.get('wall_s', '?')} s.")

@@ -1,0 +1,299 @@
+r"""Train every model of a chapter for several seeds under one protocol, score it, write a file.
+
+The protocol is the same for every model of an experiment (the book's rules for results):
+
+* **one budget**: every trained model gets the same number of CPU seconds
+  (:func:`pgm_wm.training.fit` with ``budget_s``), measured per process, so runs in parallel
+  processes get the same compute as runs one after another;
+* **one warm-up**: training crops are ``context_len + horizon`` steps long, the first
+  ``context_len`` steps are always observed (as at evaluation), and with probability
+  ``open_loop_prob`` everything after them is hidden (pure open-loop, as at evaluation);
+* **selection on validation**: :func:`pgm_wm.training.fit` keeps the epoch with the lowest
+  open-loop validation RMSE; the test split is only touched by :func:`score`;
+* **reference rows**: models that need no gradient training (repeat-last, training mean, a
+  linear ARX model, a physics oracle) are fitted in closed form when built and scored on the
+  same windows; being deterministic, they are scored once and repeated per seed.
+
+:func:`score` returns, per horizon and per test window, the squared error averaged over the
+observation dimensions (original units) and the Gaussian NLL per dimension; those arrays are
+what :mod:`pgm_wm.experiments.stats` resamples.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from ..evaluation import multistep_predict, sliding_windows
+from ..training import fit, imputation_loss_fn, set_seed
+from .results import provenance, save_results
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..datasets import SequenceData
+
+__all__ = ["Protocol", "Splits", "ModelSpec", "Experiment", "train_model", "test_windows", "score", "score_oracle",
+           "run_experiment"]
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """Training and evaluation settings shared by every model of one experiment.
+
+    The training mask (:func:`pgm_wm.training.observation_mask`) keeps each step with
+    ``keep_prob``, always the first ``context_len`` steps, hides whole windows of ``mask_window``
+    steps with a probability drawn in ``[0, max_window_drop]`` per batch, and with
+    ``open_loop_prob`` hides everything after the context.
+
+    ``horizons`` are the steps ``k`` reported (each ``<= horizon``); ``eval_stride`` the step
+    between test windows; ``valid_stride`` between validation windows.
+    """
+
+    context_len: int
+    horizon: int
+    horizons: tuple[int, ...]
+    eval_stride: int
+    valid_stride: int | None = None
+    batch_size: int = 32
+    keep_prob: float = 0.25
+    open_loop_prob: float = 0.5
+    mask_window: int | None = None
+    max_window_drop: float = 0.0
+    lr: float = 3e-3
+    patience: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.context_len < 1 or self.horizon < 1:
+            raise ValueError("context_len: context_len and horizon must be >= 1")
+        if not self.horizons or any(not 1 <= h <= self.horizon for h in self.horizons):
+            raise ValueError(f"horizons: every horizon must lie in [1, {self.horizon}], got {self.horizons}")
+
+    @property
+    def window(self) -> int:
+        return self.context_len + self.horizon
+
+
+@dataclass(frozen=True)
+class Splits:
+    """Train / validation / test data of an experiment; statistics are the training split's."""
+
+    train: "SequenceData"
+    valid: "SequenceData"
+    test: "SequenceData"
+
+    def normalized(self, split: str) -> tuple[Tensor, Tensor, Tensor]:
+        """``(obs, actions, valid)`` of ``split``, normalized with the training statistics."""
+        d = getattr(self, split)
+        return self.train.normalize_obs(d.obs), self.train.normalize_actions(d.actions), d.valid
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """How to build one model of an experiment.
+
+    ``build(splits) -> model`` with the world-model interface ``model(obs, actions, mask)``.
+    With ``trained=False`` the model is complete when built (a reference row fitted in closed
+    form inside ``build``, e.g. :meth:`pgm_wm.baselines.LinearARX.fit`); it is deterministic and
+    scored once. ``oracle(protocol) -> (mean, target)`` instead gives predictions directly, in
+    original units, for the test windows (the physics oracle of a simulated dataset,
+    :func:`pgm_wm.datasets.oracles.oracle_windows`); it has no predictive variance, so no NLL.
+    """
+
+    build: Callable[[Splits], nn.Module] | None = None
+    trained: bool = True
+    oracle: Callable[[Protocol], tuple[Tensor, Tensor]] | None = None
+
+    def __post_init__(self) -> None:
+        if (self.build is None) == (self.oracle is None):
+            raise ValueError("build: give exactly one of build and oracle")
+        if self.oracle is not None:
+            object.__setattr__(self, "trained", False)
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """A chapter's comparison: data, protocol, models, and how to report errors."""
+
+    name: str
+    title: str
+    load: Callable[[], Splits]
+    models: Mapping[str, ModelSpec]
+    protocol: Protocol
+    units: str = ""
+    scale: float = 1.0
+    notes: Mapping[str, Any] = field(default_factory=dict)
+
+
+def _windows(obs: Tensor, actions: Tensor, valid: Tensor, length: int, stride: int) -> tuple[Tensor, Tensor]:
+    """Evaluation windows of ``length`` steps in which every observation is valid."""
+    wo, wa, wv = (sliding_windows(x, length, stride) for x in (obs, actions, valid))
+    keep = wv.all(dim=1)
+    if not bool(keep.any()):
+        raise ValueError(f"length: no window of {length} fully valid steps in the data")
+    return wo[keep], wa[keep]
+
+
+@torch.no_grad()
+def _open_loop(model: nn.Module, obs: Tensor, actions: Tensor, protocol: Protocol,
+               batch: int = 256) -> tuple[Tensor, Tensor]:
+    means, vars_ = [], []
+    for s in range(0, obs.shape[0], batch):
+        m, v = multistep_predict(model, obs[s:s + batch], actions[s:s + batch], protocol.context_len,
+                                 protocol.horizon)
+        means.append(m)
+        vars_.append(v)
+    return torch.cat(means), torch.cat(vars_)
+
+
+def _valid_score(model: nn.Module, splits: Splits, protocol: Protocol) -> Callable[[], float]:
+    obs, act, val = splits.normalized("valid")
+    wo, wa = _windows(obs, act, val, protocol.window, protocol.valid_stride or protocol.horizon)
+    target = wo[:, protocol.context_len:]
+
+    def valid_fn() -> float:
+        mean, _ = _open_loop(model, wo, wa, protocol)
+        err = (mean - target).square().mean()
+        return float(err.sqrt()) if bool(torch.isfinite(err)) else math.inf
+
+    return valid_fn
+
+
+def train_model(exp: Experiment, name: str, seed: int, budget_s: float) -> tuple[nn.Module, dict[str, Any]]:
+    """Build model ``name`` with ``seed`` and train it for ``budget_s`` CPU seconds (reference rows: build only)."""
+    spec = exp.models[name]
+    splits = exp.load()
+    set_seed(seed)
+    model = spec.build(splits)
+    start = time.process_time()
+    if not spec.trained:
+        return model.eval(), {"cpu_s": round(time.process_time() - start, 2), "epochs": 0}
+    p = exp.protocol
+    obs, act, val = splits.normalized("train")
+    loss_fn = imputation_loss_fn(model, p.keep_prob, p.context_len, "nll", p.open_loop_prob,
+                                 window=p.mask_window, max_window_drop=p.max_window_drop)
+    hist = fit(loss_fn, model, (obs, act, val), p.batch_size, lr=p.lr, seed=seed,
+               valid_fn=_valid_score(model, splits, p), progress=False, crop_len=p.window,
+               budget_s=budget_s, patience=p.patience, desc=name)
+    return model.eval(), {"cpu_s": round(time.process_time() - start, 2), "epochs": hist.epochs,
+                          "best_valid": hist.best_valid_loss}
+
+
+def test_windows(splits: Splits, protocol: Protocol) -> tuple[Tensor, Tensor]:
+    """The normalized test windows ``(obs, actions)`` every model is scored on."""
+    obs, act, val = splits.normalized("test")
+    return _windows(obs, act, val, protocol.window, protocol.eval_stride)
+
+
+def score_oracle(spec: ModelSpec, splits: Splits, protocol: Protocol) -> np.ndarray:
+    """Squared errors ``(len(horizons), n_windows)`` of an oracle row, on the same windows and
+    targets as :func:`score` (checked)."""
+    assert spec.oracle is not None
+    mean, target = spec.oracle(protocol)
+    wo, _ = test_windows(splits, protocol)
+    ours = splits.train.denormalize_obs(wo[:, protocol.context_len:])
+    if tuple(target.shape) != tuple(ours.shape) or not torch.allclose(target.to(ours.dtype), ours, atol=1e-4):
+        raise ValueError("oracle: its targets differ from the runner's test windows")
+    idx = [h - 1 for h in protocol.horizons]
+    err = (mean.to(ours.dtype) - ours)[:, idx]
+    return err.square().mean(-1).T.double().numpy()
+
+
+def score(model: nn.Module, splits: Splits, protocol: Protocol) -> tuple[np.ndarray, np.ndarray]:
+    """Per horizon and test window: squared error (mean over dims, original units) and NLL.
+
+    Returns two ``(len(horizons), n_windows)`` arrays. A diverged prediction (non-finite mean or
+    a variance that is not positive and finite) is replaced by the training mean with unit
+    variance (normalized units) before scoring, so it is penalised but stays finite."""
+    p = protocol
+    wo, wa = test_windows(splits, p)
+    mean, var = _open_loop(model, wo, wa, p)
+    ok = torch.isfinite(mean) & torch.isfinite(var) & (var > 0)
+    mean = torch.where(ok, mean, torch.zeros_like(mean))
+    var = torch.where(ok, var, torch.ones_like(var))
+    std = splits.train.stats["obs_std"].to(mean.dtype)
+    idx = [h - 1 for h in p.horizons]
+    err = ((mean - wo[:, p.context_len:]) * std)[:, idx]                  # (W, H, do), original units
+    v = (var * std.square())[:, idx]
+    sq = err.square().mean(-1).T                                          # (H, W)
+    nll = (0.5 * (torch.log(2 * math.pi * v) + err.square() / v)).mean(-1).T
+    return sq.double().numpy(), nll.double().numpy()
+
+
+_FORKED_EXPERIMENT: Experiment | None = None  # set before forking workers (lambdas do not pickle)
+
+
+def _run_one(task: tuple[str, int, float], exp: Experiment | None = None
+             ) -> tuple[str, int, np.ndarray, np.ndarray | None, dict]:
+    name, seed, budget_s = task
+    exp = _FORKED_EXPERIMENT if exp is None else exp
+    assert exp is not None
+    torch.set_num_threads(1)
+    if exp.models[name].oracle is not None:
+        return name, seed, score_oracle(exp.models[name], exp.load(), exp.protocol), None, {"oracle": True}
+    model, info = train_model(exp, name, seed, budget_s)
+    sq, nll = score(model, exp.load(), exp.protocol)
+    return name, seed, sq, nll, info
+
+
+def run_experiment(exp: Experiment, seeds: Sequence[int], budget_s: float, out_path: str | None = None,
+                   jobs: int = 1, models: Sequence[str] | None = None, log: Callable[[str], None] = print
+                   ) -> dict[str, Any]:
+    """Train and score every model for every seed; return (and optionally save) the results.
+
+    ``jobs > 1`` runs (model, seed) pairs in that many processes; each gets ``budget_s`` CPU
+    seconds and one thread either way."""
+    if len(seeds) < 1:
+        raise ValueError("seeds: need at least one seed")
+    names = list(exp.models) if models is None else list(models)
+    for n in names:
+        if n not in exp.models:
+            raise ValueError(f"models: unknown model {n!r} (known: {', '.join(exp.models)})")
+    tasks = [(n, s, budget_s) for n in names for s in (seeds if exp.models[n].trained else seeds[:1])]
+    t0 = time.perf_counter()
+    if jobs > 1:
+        import multiprocessing as mp
+
+        global _FORKED_EXPERIMENT
+        _FORKED_EXPERIMENT = exp
+        with mp.get_context("fork").Pool(jobs) as pool:
+            outs = []
+            for out in pool.imap_unordered(_run_one, tasks):
+                log(f"{out[0]:>28} seed {out[1]}: {out[4]}")
+                outs.append(out)
+    else:
+        outs = []
+        for task in tasks:
+            out = _run_one(task, exp)
+            log(f"{out[0]:>28} seed {out[1]}: {out[4]}")
+            outs.append(out)
+    per: dict[str, dict[int, tuple[np.ndarray, np.ndarray | None, dict]]] = {n: {} for n in names}
+    for name, seed, sq, nll, info in outs:
+        per[name][seed] = (sq, nll, info)
+    model_entries: dict[str, Any] = {}
+    for n in names:
+        runs = [per[n][s] for s in (seeds if exp.models[n].trained else seeds[:1])]
+        if not exp.models[n].trained:     # deterministic: the same numbers for every seed
+            runs = runs * len(seeds)
+        model_entries[n] = {
+            "sq_err": np.stack([r[0] for r in runs]),
+            "nll": None if runs[0][1] is None else np.stack([r[1] for r in runs]),
+            "trained": exp.models[n].trained,
+            "runs": [r[2] for r in runs],
+        }
+    results = {
+        "experiment": exp.name, "title": exp.title, "units": exp.units, "scale": exp.scale,
+        "horizons": list(exp.protocol.horizons),
+        "protocol": {k: getattr(exp.protocol, k) for k in exp.protocol.__dataclass_fields__},
+        "notes": dict(exp.notes),
+        "provenance": provenance(budget_cpu_s=budget_s, seeds=list(seeds), jobs=jobs,
+                                 wall_s=round(time.perf_counter() - t0, 1)),
+        "models": model_entries,
+    }
+    if out_path is not None:
+        save_results(out_path, results)
+    return results
