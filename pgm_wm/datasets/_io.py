@@ -34,6 +34,9 @@ __all__ = [
     "sha256_file",
     "write_sha256sums",
     "read_sha256sums",
+    "DataFileError",
+    "verify_file",
+    "clear_verified_cache",
 ]
 
 SEP = "__"
@@ -99,8 +102,62 @@ def write_sha256sums(data_dir: str | os.PathLike, filenames: list[str]) -> Path:
 def read_sha256sums(data_dir: str | os.PathLike) -> dict[str, str]:
     """Parse ``data_dir/SHA256SUMS`` into ``{filename: hex digest}``."""
     sums = {}
-    for line in (Path(data_dir) / "SHA256SUMS").read_text().splitlines():
+    path = Path(data_dir) / "SHA256SUMS"
+    for number, line in enumerate(path.read_text().splitlines(), start=1):
         if line.strip():
-            digest, name = line.split(maxsplit=1)
-            sums[name.strip().lstrip("*")] = digest
+            parts = line.split(maxsplit=1)
+            if len(parts) != 2 or len(parts[0]) != 64:
+                raise ValueError(f"{path}: line {number} is not '<sha256 hex>  <name>': {line!r}")
+            sums[parts[1].strip().lstrip("*")] = parts[0].lower()
     return sums
+
+
+class DataFileError(ValueError):
+    """A bundled data file is missing from ``SHA256SUMS``, does not match its digest, or cannot be read.
+
+    The message names the file and the command that restores it.
+    """
+
+
+# (resolved path, size, mtime_ns, expected digest) of files whose digest matched
+_VERIFIED: set[tuple[str, int, int, str]] = set()
+
+
+def verify_file(path: str | os.PathLike, restore: str) -> Path:
+    """Check ``path`` against the ``SHA256SUMS`` of its folder; return the path.
+
+    The verdict is cached by (size, modification time), so a file is hashed once
+    per process unless it changes. ``restore`` is the command quoted in the error.
+
+    Raises:
+        FileNotFoundError: the file does not exist (the message quotes ``restore``).
+        DataFileError: ``SHA256SUMS`` is missing or does not list the file, or the
+            file's SHA-256 differs from the listed one.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path} not found; restore it with `{restore}`")
+    try:
+        sums = read_sha256sums(path.parent)
+    except (OSError, ValueError) as err:
+        raise DataFileError(f"{path.parent / 'SHA256SUMS'}: cannot be read ({err}); "
+                            f"restore it with `{restore}`") from err
+    expected = sums.get(path.name)
+    if expected is None:
+        raise DataFileError(f"{path}: not listed in {path.parent / 'SHA256SUMS'}; restore it with `{restore}`")
+    st = path.stat()
+    key = (str(path.resolve()), st.st_size, st.st_mtime_ns, expected)
+    if key in _VERIFIED:
+        return path
+    actual = sha256_file(path)
+    if actual != expected:
+        raise DataFileError(
+            f"{path}: SHA-256 {actual[:16]}... does not match {expected[:16]}... in SHA256SUMS "
+            f"(the file is corrupt, truncated or was edited); restore it with `{restore}`")
+    _VERIFIED.add(key)
+    return path
+
+
+def clear_verified_cache() -> None:
+    """Forget every cached checksum verdict (the next load hashes its file again)."""
+    _VERIFIED.clear()

@@ -15,7 +15,8 @@ from typing import Callable
 
 import numpy as np
 
-from . import drift_arm, hysteresis_arm, nile, payload_arm, pendulum, tracking
+from . import (drift_arm, hidden_payload_arm, hysteresis_arm, memory_arm, nile, pam_arm, payload_arm, pendulum,
+               slow_payload_arm, tracking)
 from ._io import write_npz, write_sha256sums
 from .loader import DATASET_NAMES, FILENAMES, data_dir
 
@@ -29,6 +30,9 @@ GENERATORS: dict[str, Callable[[], tuple[dict[str, np.ndarray], dict]]] = {
     "hysteresis_arm": hysteresis_arm.generate,
     "payload_arm": payload_arm.generate,
     "drift_arm": drift_arm.generate,
+    "memory_arm": memory_arm.generate,
+    "hidden_payload_arm": hidden_payload_arm.generate,
+    "slow_payload_arm": slow_payload_arm.generate,
 }
 
 
@@ -47,14 +51,17 @@ def generate_dataset(name: str) -> tuple[dict[str, np.ndarray], dict]:
 
 
 def build_all(names: list[str] | None = None, out_dir: str | os.PathLike | None = None,
-              verbose: bool = True) -> dict[str, dict[str, float]]:
+              verbose: bool = True, pam_source: str | os.PathLike | None = None) -> dict[str, dict[str, float]]:
     """Write the files of ``names`` (default: all) into ``out_dir`` and rewrite ``SHA256SUMS``.
 
-    ``SHA256SUMS`` always lists every dataset file present in ``out_dir``.
-    Returns ``{name: {"seconds": ..., "bytes": ...}}``.
+    ``SHA256SUMS`` always lists every dataset file present in ``out_dir``. The real
+    ``pam_arm`` file is converted from ``pam_source`` (default:
+    :func:`pgm_wm.datasets.pam_arm.find_source`); when building everything without a
+    source the committed file is kept as it is. Returns ``{name: {"seconds": ..., "bytes": ...}}``.
     """
     out = Path(out_dir) if out_dir is not None else data_dir()
     out.mkdir(parents=True, exist_ok=True)
+    explicit = names is not None
     names = list(DATASET_NAMES) if names is None else list(names)
     report = {}
     for name in names:
@@ -64,6 +71,20 @@ def build_all(names: list[str] | None = None, out_dir: str | os.PathLike | None 
         path = out / FILENAMES[name]
         if name == "nile":
             nile.write_nile_csv(path)
+        elif name == "pam_arm":
+            source = pam_arm.find_source(pam_source)
+            if source is None or not source.exists():
+                if explicit:
+                    raise ValueError(f"pam_source: {pam_arm.SOURCE_NAME} not found ({source}); pass "
+                                     f"--pam-source or set $PGM_WM_PAM_SOURCE")
+                if verbose:
+                    print(f"{name:15s} kept as it is (no {pam_arm.SOURCE_NAME} found to convert)")
+                continue
+            arrays, meta = pam_arm.convert(source)
+            meta = {**meta, "dataset": name, "format_version": FORMAT_VERSION,
+                    "build": {"numpy_version": np.__version__,
+                              "command": "python -m pgm_wm.datasets build --only pam_arm"}}
+            write_npz(path, arrays, meta)
         else:
             arrays, meta = generate_dataset(name)
             write_npz(path, arrays, meta)

@@ -24,9 +24,9 @@ import numpy as np
 
 from .two_link_arm import DEFAULT_PARAMS as ARM_PARAMS
 from .two_link_arm import VERSION as ARM_VERSION
-from .two_link_arm import simulate_two_link_arm
+from .two_link_arm import ARM_META, arm_splits
 
-__all__ = ["VERSION", "DEFAULT_PARAMS", "SPLITS", "drifting_payload", "generate"]
+__all__ = ["VERSION", "DEFAULT_PARAMS", "SPLITS", "drifting_payload", "split_schedule", "generate"]
 
 VERSION = "1.0"
 
@@ -59,32 +59,24 @@ def drifting_payload(rng: np.random.Generator, n: int, T: int, p: dict) -> np.nd
     return 0.5 * p["payload_max"] * (1.0 + np.tanh(s))
 
 
+def split_schedule(split: str, params: dict | None = None) -> dict[str, np.ndarray]:
+    """``{"payload": (n, T)}`` in kg of one split, drawn from its seed (:func:`drifting_payload`)."""
+    p = {**DEFAULT_PARAMS, **(params or {})}
+    n, T, seed = SPLITS[split]
+    return {"payload": drifting_payload(np.random.default_rng(seed), n, T, p)}
+
+
 def generate(params: dict | None = None) -> tuple[dict[str, np.ndarray], dict]:
     """All splits as ``({"<split>__<array>": array}, meta)``."""
     p = {**DEFAULT_PARAMS, **(params or {})}
-    arm_p = {key: p[key] for key in ARM_PARAMS}
-    arrays: dict[str, np.ndarray] = {}
-    splits_meta = {}
-    for split, (n, T, seed) in SPLITS.items():
-        rng = np.random.default_rng(seed)
-        payload = drifting_payload(rng, n, T, p)
-        out = simulate_two_link_arm(seed + 100_000, payload, arm_p)
-        arrays[f"{split}__obs"] = out["obs"].astype(np.float32)
-        arrays[f"{split}__action_options__pd_target"] = out["pd_target"].astype(np.float32)
-        arrays[f"{split}__action_options__torque"] = out["torque"].astype(np.float32)
-        arrays[f"{split}__hidden__payload"] = payload.astype(np.float32)
-        splits_meta[split] = {"n": n, "T": T, "seed": seed, "sim_seed": seed + 100_000}
+    arrays, splits_meta = arm_splits({split: seed for split, (_, _, seed) in SPLITS.items()}, split_schedule, p)
     meta = {
         "generator": {"name": "pgm_wm.datasets.two_link_arm.simulate_two_link_arm",
                       "version": f"{VERSION}+arm{ARM_VERSION}", "params": p,
                       "schedule": "pgm_wm.datasets.drift_arm.drifting_payload"},
         "splits": splits_meta,
         "dt": p["dt"],
-        "units": {"obs": "rad, rad, rad/s, rad/s", "pd_target": "rad", "torque": "N m", "payload": "kg"},
-        "obs_names": ["q1", "q2", "qd1", "qd2"],
-        "action_options": {"pd_target": ["q1_target", "q2_target"], "torque": ["tau1", "tau2"]},
-        "default_action": "pd_target",
-        "target_names": [],
+        **ARM_META,
         "description": "The payload arm at 25 Hz over 40 s episodes whose tip payload drifts "
                        "slowly inside (0, 2.5) kg (sum of sines with periods of 10-60 s).",
     }

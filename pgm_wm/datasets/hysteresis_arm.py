@@ -50,9 +50,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .signals import random_steps, sum_of_sines
+from .signals import drop_burn_in, random_steps, sum_of_sines
 
-__all__ = ["VERSION", "DEFAULT_PARAMS", "SPLITS", "hysteresis_actions", "simulate_hysteresis_arm", "generate"]
+__all__ = ["VERSION", "DEFAULT_PARAMS", "SPLITS", "hysteresis_actions", "initial_state", "rollout_hysteresis_arm",
+           "simulate_hysteresis_arm", "generate"]
 
 VERSION = "1.0"
 
@@ -106,17 +107,23 @@ def hysteresis_actions(rng: np.random.Generator, n: int, T: int, p: dict) -> np.
     return np.clip(np.stack(acts, axis=-1), -1.0, 1.0)
 
 
-def simulate_hysteresis_arm(seed: int, n: int, T: int, params: dict | None = None) -> dict[str, np.ndarray]:
-    """Simulate ``n`` sequences of ``T`` frames; pure function of its arguments.
+def initial_state(n: int) -> dict[str, np.ndarray]:
+    """All-zero state: ``angle, velocity, pressure, hysteresis (n, 2)``."""
+    return {key: np.zeros((n, 2)) for key in ("angle", "velocity", "pressure", "hysteresis")}
 
-    Returns float64 arrays ``actions (n, T, 2)``, ``angle (n, T, 2)`` (noise-free),
-    ``obs (n, T, 2)`` (noisy angles), ``velocity``, ``pressure``, ``hysteresis``
-    (each ``(n, T, 2)``). ``actions[:, t]`` acts between frames ``t`` and ``t+1``.
+
+def rollout_hysteresis_arm(u_all: np.ndarray, state: dict[str, np.ndarray], params: dict | None = None
+                           ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Integrate the module's equations for valve commands ``u_all (n, T, 2)`` from ``state``.
+
+    ``state``: ``angle, velocity, pressure, hysteresis (n, 2)`` (theta, omega, p, z),
+    the full state of the arm. Returns ``(record, final_state)``: ``record`` holds the four
+    states ``(n, T, 2)`` at the start of every frame, ``final_state`` the state after the
+    last frame. Used by :func:`simulate_hysteresis_arm` and by the physics oracle
+    (:mod:`pgm_wm.datasets.oracles`).
     """
     p = {**DEFAULT_PARAMS, **(params or {})}
-    rng = np.random.default_rng(seed)
-    burn = int(p["burn_in"])
-    u_all = hysteresis_actions(rng, n, T + burn, p)
+    n, T, _ = u_all.shape
     k = int(p["n_substeps"])
     h = p["dt"] / k
     J = np.asarray(p["J"])
@@ -129,12 +136,12 @@ def simulate_hysteresis_arm(seed: int, n: int, T: int, params: dict | None = Non
     decay_vent = np.exp(-h / p["tau_vent"])
     lim = p["theta_lim"]
 
-    th = np.zeros((n, 2))
-    om = np.zeros((n, 2))
-    pr = np.zeros((n, 2))
-    z = np.zeros((n, 2))
-    rec = {key: np.empty((n, T + burn, 2)) for key in ("angle", "velocity", "pressure", "hysteresis")}
-    for t in range(T + burn):
+    th = state["angle"].astype(np.float64, copy=True)
+    om = state["velocity"].astype(np.float64, copy=True)
+    pr = state["pressure"].astype(np.float64, copy=True)
+    z = state["hysteresis"].astype(np.float64, copy=True)
+    rec = {key: np.empty((n, T, 2)) for key in ("angle", "velocity", "pressure", "hysteresis")}
+    for t in range(T):
         rec["angle"][:, t] = th
         rec["velocity"][:, t] = om
         rec["pressure"][:, t] = pr
@@ -154,10 +161,22 @@ def simulate_hysteresis_arm(seed: int, n: int, T: int, params: dict | None = Non
             om = om + h * torque / J
             th = th + h * om
             z = z + h * (A * om - beta * np.abs(om) * z - gamma * om * np.abs(z))
-    out = {key: val[:, burn:] for key, val in rec.items()}
-    out["actions"] = u_all[:, burn:]
-    out["obs"] = out["angle"] + p["obs_noise"] * rng.standard_normal((n, T, 2))
-    return out
+    return rec, {"angle": th, "velocity": om, "pressure": pr, "hysteresis": z}
+
+
+def simulate_hysteresis_arm(seed: int, n: int, T: int, params: dict | None = None) -> dict[str, np.ndarray]:
+    """Simulate ``n`` sequences of ``T`` frames; pure function of its arguments.
+
+    Returns float64 arrays ``actions (n, T, 2)``, ``angle (n, T, 2)`` (noise-free),
+    ``obs (n, T, 2)`` (noisy angles), ``velocity``, ``pressure``, ``hysteresis``
+    (each ``(n, T, 2)``). ``actions[:, t]`` acts between frames ``t`` and ``t+1``.
+    """
+    p = {**DEFAULT_PARAMS, **(params or {})}
+    rng = np.random.default_rng(seed)
+    burn = int(p["burn_in"])
+    u_all = hysteresis_actions(rng, n, T + burn, p)
+    rec, _ = rollout_hysteresis_arm(u_all, initial_state(n), p)
+    return drop_burn_in(rng, rec, u_all, burn, p["obs_noise"])
 
 
 def generate(params: dict | None = None) -> tuple[dict[str, np.ndarray], dict]:

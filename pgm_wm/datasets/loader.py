@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass, field
+import tokenize
+import zipfile
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -29,15 +31,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._checks import check_last_dims
 from . import nile as _nile
-from ._io import META_KEY, SEP
+from . import pam_arm as _pam_arm
+from ._io import META_KEY, SEP, DataFileError, verify_file
 from .pendulum import render_pendulum
+from .sequences import SequenceData, _stats_numpy
 
 __all__ = ["DATASET_NAMES", "SPLITS", "ACTION_OPTIONS", "SequenceData", "load", "data_dir"]
 
 DATASET_NAMES: tuple[str, ...] = (
-    "nile", "tracking", "pendulum", "hysteresis_arm", "payload_arm", "drift_arm",
+    "nile", "tracking", "pendulum", "hysteresis_arm", "payload_arm", "drift_arm", "pam_arm",
+    "memory_arm", "hidden_payload_arm", "slow_payload_arm",
 )
 
 SPLITS: dict[str, tuple[str, ...]] = {
@@ -47,11 +51,20 @@ SPLITS: dict[str, tuple[str, ...]] = {
     "hysteresis_arm": ("train", "valid", "test"),
     "payload_arm": ("train", "valid", "test", "interp", "extrap", "switching"),
     "drift_arm": ("train", "valid", "test"),
+    "pam_arm": ("train", "valid", "test"),
+    "memory_arm": ("train", "valid", "test"),
+    "hidden_payload_arm": ("train", "valid", "test"),
+    "slow_payload_arm": ("train", "valid", "test"),
 }
+
+#: Real data: rebuilt from a source file outside the repository, not by a generator.
+REAL_DATASETS: tuple[str, ...] = ("nile", "pam_arm")
 
 ACTION_OPTIONS: dict[str, tuple[str, ...]] = {
     "payload_arm": ("pd_target", "torque"),
     "drift_arm": ("pd_target", "torque"),
+    "pam_arm": ("command", "increment"),
+    "hidden_payload_arm": ("pd_target", "torque"),
 }
 
 FILENAMES: dict[str, str] = {name: f"{name}.npz" for name in DATASET_NAMES}
@@ -64,104 +77,6 @@ def data_dir() -> Path:
     if env:
         return Path(env)
     return Path(__file__).resolve().parent.parent.parent / "data"
-
-
-@dataclass(repr=False)
-class SequenceData:
-    """One split of one dataset (``n`` sequences of ``T`` steps).
-
-    Fields:
-        name, split: what was loaded.
-        obs: ``(n, T, d_obs)``; 0 at missing steps (see ``valid``).
-        actions: ``(n, T, d_act)`` or ``None``; ``actions[:, t]`` acts between
-            ``obs[:, t]`` and ``obs[:, t + 1]``.
-        valid: bool ``(n, T)``; ``False`` = observation missing.
-        targets: ``(n, T, d_tgt)`` or ``None`` (pendulum ``(sin, cos)``; tracking clean positions).
-        hidden: evaluation-only tensors, leading dims ``(n, T)`` (e.g. ``payload (n, T)`` in kg).
-        meta: ``dt``, ``units``, ``obs_names``, ``action_names``, ``generator`` (name,
-            version, seeds, params), ``seed``, ``description``, ... (JSON-like dict).
-        stats: training-split statistics ``obs_mean/obs_std (d_obs,)``,
-            ``act_mean/act_std (d_act,)``, ``diff_mean/diff_std (d_obs,)`` (no diff
-            statistics for the pendulum's images).
-
-    The normalisation helpers take tensors whose last dimension is the feature
-    dimension (any leading dims) and use ``stats``: ``x_norm = (x - mean) / std``.
-    """
-
-    name: str
-    split: str
-    obs: Tensor
-    actions: Tensor | None
-    valid: Tensor
-    targets: Tensor | None
-    hidden: dict[str, Tensor]
-    meta: dict[str, Any]
-    stats: dict[str, Tensor] = field(default_factory=dict)
-
-    @property
-    def n_sequences(self) -> int:
-        return int(self.obs.shape[0])
-
-    @property
-    def seq_len(self) -> int:
-        return int(self.obs.shape[1])
-
-    @property
-    def obs_dim(self) -> int:
-        return int(self.obs.shape[2])
-
-    @property
-    def action_dim(self) -> int:
-        return 0 if self.actions is None else int(self.actions.shape[2])
-
-    def _stat(self, key: str, like: Tensor) -> Tensor:
-        if key not in self.stats:
-            raise ValueError(f"{key}: no such statistic for dataset {self.name!r}")
-        return self.stats[key].to(dtype=like.dtype, device=like.device)
-
-    def _check(self, argname: str, x: Tensor, dim: int) -> Tensor:
-        return check_last_dims(argname, x, (dim,))
-
-    def normalize_obs(self, obs: Tensor) -> Tensor:
-        """``(..., d_obs) -> (..., d_obs)``: ``(obs - obs_mean) / obs_std``."""
-        self._check("obs", obs, self.obs_dim)
-        return (obs - self._stat("obs_mean", obs)) / self._stat("obs_std", obs)
-
-    def denormalize_obs(self, obs_norm: Tensor) -> Tensor:
-        """Inverse of :meth:`normalize_obs`, ``(..., d_obs)``."""
-        self._check("obs_norm", obs_norm, self.obs_dim)
-        return obs_norm * self._stat("obs_std", obs_norm) + self._stat("obs_mean", obs_norm)
-
-    def normalize_actions(self, actions: Tensor) -> Tensor:
-        """``(..., d_act) -> (..., d_act)``: ``(actions - act_mean) / act_std``."""
-        self._check("actions", actions, self.action_dim)
-        return (actions - self._stat("act_mean", actions)) / self._stat("act_std", actions)
-
-    def denormalize_actions(self, actions_norm: Tensor) -> Tensor:
-        """Inverse of :meth:`normalize_actions`, ``(..., d_act)``."""
-        self._check("actions_norm", actions_norm, self.action_dim)
-        return actions_norm * self._stat("act_std", actions_norm) + self._stat("act_mean", actions_norm)
-
-    def normalize_diff(self, diff: Tensor) -> Tensor:
-        """``(..., d_obs) -> (..., d_obs)`` for ``diff = o_{t+1} - o_t``: ``(diff - diff_mean) / diff_std``."""
-        self._check("diff", diff, self.obs_dim)
-        return (diff - self._stat("diff_mean", diff)) / self._stat("diff_std", diff)
-
-    def denormalize_diff(self, diff_norm: Tensor) -> Tensor:
-        """Inverse of :meth:`normalize_diff`, ``(..., d_obs)``."""
-        self._check("diff_norm", diff_norm, self.obs_dim)
-        return diff_norm * self._stat("diff_std", diff_norm) + self._stat("diff_mean", diff_norm)
-
-    def __repr__(self) -> str:
-        def shape(t: Tensor | None) -> str:
-            return "None" if t is None else str(tuple(t.shape))
-
-        hidden = ", ".join(f"{k}: {tuple(v.shape)}" for k, v in self.hidden.items())
-        return (
-            f"SequenceData(name={self.name!r}, split={self.split!r}, obs={shape(self.obs)}, "
-            f"actions={shape(self.actions)}, valid={shape(self.valid)}, targets={shape(self.targets)}, "
-            f"hidden={{{hidden}}}, dt={self.meta.get('dt')}, stats={sorted(self.stats)})"
-        )
 
 
 # --------------------------------------------------------------------------- reading
@@ -184,28 +99,48 @@ def _check_name_split(name: str, split: str, action: str | None) -> None:
         raise ValueError(f"action: dataset {name!r} has a single action type; leave action=None")
 
 
+def restore_command(name: str) -> str:
+    """The shell command that rewrites the bundled file of dataset ``name``."""
+    if name == "pam_arm":  # real data: rebuilt only from its source (see data/README.md)
+        return f"git checkout -- data/{FILENAMES[name]}"
+    return f"python -m pgm_wm.datasets build --only {name}"
+
+
 def _path(name: str) -> Path:
-    path = data_dir() / FILENAMES[name]
-    if not path.exists():
-        raise FileNotFoundError(
-            f"{path} not found; regenerate the bundled data with `python -m pgm_wm.datasets build`"
-        )
-    return path
+    """Path of the file of ``name``, verified against ``SHA256SUMS`` (cached by size and mtime)."""
+    return verify_file(data_dir() / FILENAMES[name], restore_command(name))
 
 
-def _read_split_npz(path: Path, split: str) -> tuple[dict[str, np.ndarray], dict]:
+# Everything numpy, zipfile, zlib and json raise on a damaged file.
+_READ_ERRORS = (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error,
+                tokenize.TokenError, SyntaxError, UnicodeDecodeError)
+
+
+def _unreadable(path: Path, name: str, err: Exception) -> DataFileError:
+    return DataFileError(f"{path}: cannot be read ({type(err).__name__}: {err}); "
+                         f"restore it with `{restore_command(name)}`")
+
+
+def _read_split_npz(path: Path, split: str, name: str) -> tuple[dict[str, np.ndarray], dict]:
     """Arrays of one split (keys without the ``<split>__`` prefix) and the file's metadata."""
     prefix = split + SEP
-    with np.load(path, allow_pickle=False) as data:
-        meta = json.loads(str(data[META_KEY][()]))
-        arrays = {key[len(prefix):]: data[key] for key in data.files if key.startswith(prefix)}
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            meta = json.loads(str(data[META_KEY][()]))
+            arrays = {key[len(prefix):]: data[key] for key in data.files if key.startswith(prefix)}
+    except _READ_ERRORS as err:
+        raise _unreadable(path, name, err) from err
     return arrays, meta
 
 
 def _assemble_numpy(name: str, split: str, action: str | None) -> tuple[dict[str, Any], dict]:
     """Numpy pieces of a split: obs, actions, valid, targets, hidden; plus metadata."""
     if name == "nile":
-        years, volume = _nile.read_nile_csv(_path(name))
+        path = _path(name)
+        try:
+            years, volume = _nile.read_nile_csv(path)
+        except _READ_ERRORS as err:
+            raise _unreadable(path, name, err) from err
         meta = {
             "dt": 1.0,
             "units": {"obs": "10^8 m^3 per year"},
@@ -226,7 +161,23 @@ def _assemble_numpy(name: str, split: str, action: str | None) -> tuple[dict[str
                   "targets": None, "hidden": {}}
         return pieces, meta
 
-    arrays, meta = _read_split_npz(_path(name), split)
+    if name == "pam_arm":
+        path = _path(name)
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {key: data[key] for key in data.files if key != META_KEY}
+                meta = json.loads(str(data[META_KEY][()]))
+            pieces = _pam_arm.assemble(arrays, meta, split, action or meta["default_action"])
+        except _READ_ERRORS as err:
+            raise _unreadable(path, name, err) from err
+        meta["split_info"] = {**meta["splits"][split], "indices": pieces.pop("episode_index").tolist()}
+        meta["seed"] = meta["split_info"]["seed"]
+        meta["action"] = action or meta["default_action"]
+        meta["action_names"] = meta["action_options"][meta["action"]]
+        meta["units"] = {**meta["units"], "actions": meta["units"][meta["action"]]}
+        return pieces, meta
+
+    arrays, meta = _read_split_npz(_path(name), split, name)
     hidden = {key[len("hidden" + SEP):]: val for key, val in arrays.items() if key.startswith("hidden" + SEP)}
     meta = dict(meta)
     meta["split_info"] = meta["splits"][split]
@@ -259,46 +210,10 @@ def _assemble_numpy(name: str, split: str, action: str | None) -> tuple[dict[str
     return pieces, meta
 
 
-def _masked_mean_std(x: np.ndarray, mask: np.ndarray, chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and (population) std over the rows of ``x (N, d)`` where ``mask (N,)``; float64, two passes."""
-    w = np.asarray(mask, dtype=np.float64)
-    count = w.sum()
-    if count == 0:
-        raise ValueError("mask: no valid entries to compute statistics from")
-    total = np.zeros(x.shape[1])
-    for start in range(0, x.shape[0], chunk):
-        total += w[start:start + chunk] @ x[start:start + chunk].astype(np.float64)
-    mean = total / count
-    sq = np.zeros(x.shape[1])
-    for start in range(0, x.shape[0], chunk):
-        dev = x[start:start + chunk].astype(np.float64)
-        dev -= mean
-        dev *= dev
-        sq += w[start:start + chunk] @ dev
-    return mean, np.sqrt(sq / count)
-
-
 def _compute_stats(pieces: dict[str, Any], with_diff: bool) -> dict[str, np.ndarray]:
-    """Per-feature mean and std (float64) over valid steps; differences over valid pairs.
-
-    Standard deviations are floored at 1e-6 so that normalising never divides by zero.
-    """
-    obs = np.asarray(pieces["obs"])
-    valid = np.asarray(pieces["valid"], dtype=bool)
-    n, T, d = obs.shape
-    stats = {}
-    stats["obs_mean"], std = _masked_mean_std(obs.reshape(n * T, d), valid.reshape(-1))
-    stats["obs_std"] = np.maximum(std, 1e-6)
-    if pieces["actions"] is not None:
-        a = np.asarray(pieces["actions"])
-        stats["act_mean"], std = _masked_mean_std(a.reshape(n * T, -1), np.ones(n * T, dtype=bool))
-        stats["act_std"] = np.maximum(std, 1e-6)
-    if with_diff:
-        pair = (valid[:, 1:] & valid[:, :-1]).reshape(-1)
-        diff = (obs[:, 1:].astype(np.float64) - obs[:, :-1]).reshape(n * (T - 1), d)
-        stats["diff_mean"], std = _masked_mean_std(diff, pair)
-        stats["diff_std"] = np.maximum(std, 1e-6)
-    return stats
+    """:func:`~pgm_wm.datasets.sequences.compute_stats` of the numpy pieces of a split (float64)."""
+    actions = None if pieces["actions"] is None else np.asarray(pieces["actions"])
+    return _stats_numpy(np.asarray(pieces["obs"]), actions, np.asarray(pieces["valid"], dtype=bool), with_diff)
 
 
 _STATS_CACHE: dict[tuple, dict[str, np.ndarray]] = {}
@@ -332,6 +247,12 @@ def load(name: str, split: str = "train", dtype: torch.dtype = torch.float32,
     Raises:
         ValueError: unknown ``name``, ``split`` or ``action`` (the message lists the valid ones)
             or a non-floating ``dtype``.
+        DataFileError: (a ``ValueError``) the file does not match ``data/SHA256SUMS`` or cannot
+            be read; the message names the file and the command that restores it.
+        FileNotFoundError: the file is missing (the message names the restoring command).
+
+    Every file is checked against ``SHA256SUMS`` before use; the verdict is cached by the
+    file's size and modification time, so only the first load of a file pays for hashing.
     """
     _check_name_split(name, split, action)
     if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):

@@ -23,11 +23,11 @@ import numpy as np
 
 from .two_link_arm import DEFAULT_PARAMS as ARM_PARAMS
 from .two_link_arm import VERSION as ARM_VERSION
-from .two_link_arm import simulate_two_link_arm
+from .two_link_arm import ARM_META, arm_splits
 
 __all__ = [
     "VERSION", "DEFAULT_PARAMS", "SPLITS", "TRAIN_PAYLOAD_RANGES", "sample_train_payloads",
-    "payload_schedule", "generate",
+    "payload_schedule", "split_schedule", "generate",
 ]
 
 VERSION = "1.0"
@@ -80,35 +80,28 @@ def payload_schedule(
     raise ValueError(f"kind: expected 'constant' or 'switching', got {kind!r}")
 
 
+def split_schedule(split: str, params: dict | None = None) -> dict[str, np.ndarray]:
+    """``{"payload": (n, T)}`` in kg of one split, drawn from its seed (:func:`payload_schedule`)."""
+    p = {**DEFAULT_PARAMS, **(params or {})}
+    n, T, seed, kind, value_range = SPLITS[split]
+    return {"payload": payload_schedule(np.random.default_rng(seed), n, T, kind, value_range, p)}
+
+
 def generate(params: dict | None = None) -> tuple[dict[str, np.ndarray], dict]:
     """All splits as ``({"<split>__<array>": array}, meta)``."""
     p = {**DEFAULT_PARAMS, **(params or {})}
-    arm_p = {key: p[key] for key in ARM_PARAMS}
-    arrays: dict[str, np.ndarray] = {}
-    splits_meta = {}
-    for split, (n, T, seed, kind, value_range) in SPLITS.items():
-        rng = np.random.default_rng(seed)
-        payload = payload_schedule(rng, n, T, kind, value_range, p)
-        out = simulate_two_link_arm(seed + 100_000, payload, arm_p)
-        arrays[f"{split}__obs"] = out["obs"].astype(np.float32)
-        arrays[f"{split}__action_options__pd_target"] = out["pd_target"].astype(np.float32)
-        arrays[f"{split}__action_options__torque"] = out["torque"].astype(np.float32)
-        arrays[f"{split}__hidden__payload"] = payload.astype(np.float32)
-        splits_meta[split] = {"n": n, "T": T, "seed": seed, "sim_seed": seed + 100_000,
-                              "payload_schedule": kind,
-                              "payload_range": value_range if value_range is not None
-                              else [list(r) for r in TRAIN_PAYLOAD_RANGES]}
+    arrays, splits_meta = arm_splits({split: spec[2] for split, spec in SPLITS.items()}, split_schedule, p)
+    for split, (_, _, _, kind, value_range) in SPLITS.items():
+        splits_meta[split].update({"payload_schedule": kind,
+                                   "payload_range": value_range if value_range is not None
+                                   else [list(r) for r in TRAIN_PAYLOAD_RANGES]})
     meta = {
         "generator": {"name": "pgm_wm.datasets.two_link_arm.simulate_two_link_arm",
                       "version": f"{VERSION}+arm{ARM_VERSION}", "params": p,
                       "schedule": "pgm_wm.datasets.payload_arm.payload_schedule"},
         "splits": splits_meta,
         "dt": p["dt"],
-        "units": {"obs": "rad, rad, rad/s, rad/s", "pd_target": "rad", "torque": "N m", "payload": "kg"},
-        "obs_names": ["q1", "q2", "qd1", "qd2"],
-        "action_options": {"pd_target": ["q1_target", "q2_target"], "torque": ["tau1", "tau2"]},
-        "default_action": "pd_target",
-        "target_names": [],
+        **ARM_META,
         "train_payload_ranges": [list(r) for r in TRAIN_PAYLOAD_RANGES],
         "description": "PD-controlled planar 2-link arm (3 kg and 2 kg links of 0.5 m) with a tip "
                        "payload of 0-2.5 kg; gravity compensation ignores the payload, so the arm "

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["sum_of_sines", "random_steps", "lowpass", "ou_process"]
+__all__ = ["sum_of_sines", "random_steps", "lowpass", "ou_process", "drop_burn_in"]
 
 
 def sum_of_sines(
@@ -101,4 +101,18 @@ def ou_process(
     scale = sigma * np.sqrt(1.0 - rho**2)
     for t in range(1, shape[1]):
         out[:, t] = rho * out[:, t - 1] + scale * eps[:, t]
+    return out
+
+
+def drop_burn_in(rng: np.random.Generator, record: dict[str, np.ndarray], actions: np.ndarray, burn: int,
+                 obs_noise: float) -> dict[str, np.ndarray]:
+    """Drop the first ``burn`` frames of a valve-arm run and add the angle observations.
+
+    ``record``: states ``(n, burn + T, ...)`` including ``angle (n, burn + T, 2)``;
+    ``actions (n, burn + T, d)``. Returns the cropped states, ``actions`` and
+    ``obs = angle + obs_noise * N(0, 1)`` (drawn from ``rng`` after everything else).
+    """
+    out = {key: val[:, burn:] for key, val in record.items()}
+    out["actions"] = actions[:, burn:]
+    out["obs"] = out["angle"] + obs_noise * rng.standard_normal(out["angle"].shape)
     return out

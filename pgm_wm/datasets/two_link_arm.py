@@ -47,6 +47,8 @@ rad; the closed loop is stable, so long open-loop predictions are feasible).
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from .signals import lowpass, ou_process, random_steps
@@ -57,7 +59,24 @@ __all__ = [
     "arm_terms",
     "pd_targets",
     "simulate_two_link_arm",
+    "rollout_two_link_arm",
+    "SIM_SEED_OFFSET",
+    "ARM_META",
+    "arm_split_arrays",
+    "arm_splits",
 ]
+
+#: The simulation seed of a split is its schedule seed plus this offset.
+SIM_SEED_OFFSET = 100_000
+
+#: Metadata shared by the payload-arm datasets (observations and both action options).
+ARM_META: dict = {
+    "units": {"obs": "rad, rad, rad/s, rad/s", "pd_target": "rad", "torque": "N m", "payload": "kg"},
+    "obs_names": ["q1", "q2", "qd1", "qd2"],
+    "action_options": {"pd_target": ["q1_target", "q2_target"], "torque": ["tau1", "tau2"]},
+    "default_action": "pd_target",
+    "target_names": [],
+}
 
 VERSION = "1.0"
 
@@ -123,8 +142,9 @@ def simulate_two_link_arm(seed: int, payload: np.ndarray, params: dict | None = 
     ``(t+1) dt``); a burn-in of ``burn_in_s`` seconds with the first payload
     value is simulated and dropped. Returns float64 arrays ``obs (n, T, 4)``
     (noisy ``q1, q2, qd1, qd2``), ``state (n, T, 4)`` (noise-free),
-    ``torque (n, T, 2)`` and ``pd_target (n, T, 2)``; ``torque[:, t]`` and
-    ``pd_target[:, t]`` act between frames ``t`` and ``t+1``.
+    ``torque (n, T, 2)``, ``pd_target (n, T, 2)`` and ``torque_noise (n, T, 2)`` (the OU
+    noise xi_t inside ``torque``); ``torque[:, t]`` and ``pd_target[:, t]`` act
+    between frames ``t`` and ``t+1``.
     """
     p = {**DEFAULT_PARAMS, **(params or {})}
     payload = np.asarray(payload, dtype=np.float64)
@@ -140,6 +160,28 @@ def simulate_two_link_arm(seed: int, payload: np.ndarray, params: dict | None = 
     ref = pd_targets(rng, n, Ttot, p)
     noise = ou_process(rng, (n, Ttot, 2), dt, p["torque_noise_tau"], p["torque_noise"])
     mp_all = np.concatenate([np.repeat(payload[:, :1], burn, axis=1), payload], axis=1)
+    start = np.stack([ref[:, 0, 0], ref[:, 0, 1], np.zeros(n), np.zeros(n)], axis=-1)
+    state, torque = rollout_two_link_arm(start, ref, noise, mp_all, p)
+    state = state[:, burn:]
+    obs_noise = np.array([p["q_obs_noise"]] * 2 + [p["qd_obs_noise"]] * 2)
+    obs = state + obs_noise * rng.standard_normal((n, T, 4))
+    return {"obs": obs, "state": state, "torque": torque[:, burn:], "pd_target": ref[:, burn:],
+            "torque_noise": noise[:, burn:]}
+
+
+def rollout_two_link_arm(state0: np.ndarray, ref: np.ndarray, noise: np.ndarray, payload: np.ndarray,
+                         params: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Closed loop of Eq. (arm-dynamics) and Eq. (arm-pd) from a given state (pure function).
+
+    ``state0 (n, 4)`` = ``(q1, q2, qd1, qd2)`` at frame 0; ``ref (n, T, 2)`` PD targets,
+    ``noise (n, T, 2)`` torque noise (zeros for a noise-free rollout), ``payload (n, T)``
+    in kg, all per frame. Returns the states ``(n, T, 4)`` at the start of each frame
+    and the torques ``(n, T, 2)`` applied during it. Used by :func:`simulate_two_link_arm`
+    and by the physics oracles of the diagnostics (true vs nominal payload).
+    """
+    p = {**DEFAULT_PARAMS, **(params or {})}
+    mp_all = np.asarray(payload, dtype=np.float64)
+    n, Ttot = mp_all.shape
     Kp1, Kp2 = p["Kp"]
     Kd1, Kd2 = p["Kd"]
     bf = p["b"]
@@ -147,7 +189,7 @@ def simulate_two_link_arm(seed: int, payload: np.ndarray, params: dict | None = 
     m1, m2 = p["m"]
     l1, l2 = p["l"]
     k = int(p["n_substeps"])
-    h = dt / k
+    h = p["dt"] / k
     # payload-dependent constants of Eq. (arm-dynamics), one value per frame: (n, Ttot)
     mb = m2 + mp_all
     cb = (m2 * l2 / 2 + mp_all * l2) / mb
@@ -160,10 +202,10 @@ def simulate_two_link_arm(seed: int, payload: np.ndarray, params: dict | None = 
     # nominal (payload-free) gravity constants for the controller's compensation
     g1n = p["gravity_compensation"] * g * (m1 * l1 / 2 + m2 * l1)
     g2n = p["gravity_compensation"] * g * m2 * l2 / 2
-    q1 = ref[:, 0, 0].copy()
-    q2 = ref[:, 0, 1].copy()
-    w1 = np.zeros(n)
-    w2 = np.zeros(n)
+    q1 = state0[:, 0].astype(np.float64, copy=True)
+    q2 = state0[:, 1].astype(np.float64, copy=True)
+    w1 = state0[:, 2].astype(np.float64, copy=True)
+    w2 = state0[:, 3].astype(np.float64, copy=True)
     state = np.empty((n, Ttot, 4))
     torque = np.empty((n, Ttot, 2))
     for t in range(Ttot):
@@ -188,7 +230,37 @@ def simulate_two_link_arm(seed: int, payload: np.ndarray, params: dict | None = 
             w2 = w2 + h * (M11 * r2 - M12 * r1) / det
             q1 = q1 + h * w1
             q2 = q2 + h * w2
-    state = state[:, burn:]
-    obs_noise = np.array([p["q_obs_noise"]] * 2 + [p["qd_obs_noise"]] * 2)
-    obs = state + obs_noise * rng.standard_normal((n, T, 4))
-    return {"obs": obs, "state": state, "torque": torque[:, burn:], "pd_target": ref[:, burn:]}
+    return state, torque
+
+
+def arm_split_arrays(split: str, seed: int, payload: np.ndarray, params: dict) -> tuple[dict[str, np.ndarray], dict]:
+    """Simulate one split for ``payload (n, T)`` and name its arrays as the loader expects.
+
+    Returns ``({"<split>__obs", "<split>__action_options__pd_target", ..._torque,
+    "<split>__hidden__payload"}: float32, split metadata {n, T, seed, sim_seed})``; the
+    simulation seed is ``seed + SIM_SEED_OFFSET``.
+    """
+    out = simulate_two_link_arm(seed + SIM_SEED_OFFSET, payload, params)
+    arrays = {f"{split}__obs": out["obs"].astype(np.float32),
+              f"{split}__action_options__pd_target": out["pd_target"].astype(np.float32),
+              f"{split}__action_options__torque": out["torque"].astype(np.float32),
+              f"{split}__hidden__payload": np.asarray(payload).astype(np.float32)}
+    n, T = payload.shape
+    return arrays, {"n": n, "T": T, "seed": seed, "sim_seed": seed + SIM_SEED_OFFSET}
+
+
+def arm_splits(seeds: dict[str, int], schedule: Callable[[str, dict], dict[str, np.ndarray]], params: dict
+               ) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
+    """All splits of a payload-arm dataset: :func:`arm_split_arrays` of ``schedule(split, params)["payload"]``.
+
+    ``seeds``: ``{split: schedule seed}`` in file order; ``params``: the dataset's parameters
+    (the arm's entries of :data:`DEFAULT_PARAMS` are passed to the simulator). Returns
+    ``(arrays, {split: split metadata})``.
+    """
+    arm_p = {key: params[key] for key in DEFAULT_PARAMS}
+    arrays: dict[str, np.ndarray] = {}
+    splits_meta: dict[str, dict] = {}
+    for split, seed in seeds.items():
+        split_arrays, splits_meta[split] = arm_split_arrays(split, seed, schedule(split, params)["payload"], arm_p)
+        arrays.update(split_arrays)
+    return arrays, splits_meta
