@@ -37,7 +37,7 @@ from .results import provenance, save_results
 if TYPE_CHECKING:  # pragma: no cover
     from ..datasets import SequenceData
 
-__all__ = ["Protocol", "Splits", "ModelSpec", "Experiment", "train_model", "test_windows", "score", "score_oracle",
+__all__ = ["Protocol", "Splits", "ModelSpec", "Experiment", "train_model", "validation_rmse", "test_windows", "score", "score_oracle",
            "run_experiment"]
 
 
@@ -161,6 +161,11 @@ def _valid_score(model: nn.Module, splits: Splits, protocol: Protocol) -> Callab
         return float(err.sqrt()) if bool(torch.isfinite(err)) else math.inf
 
     return valid_fn
+
+
+def validation_rmse(model: nn.Module, splits: Splits, protocol: Protocol) -> float:
+    """Open-loop RMSE (normalized units) of ``model`` on the validation windows."""
+    return _valid_score(model, splits, protocol)()
 
 
 def train_model(exp: Experiment, name: str, seed: int, budget_s: float) -> tuple[nn.Module, dict[str, Any]]:
