@@ -93,8 +93,6 @@ __all__ = [
     "TaskSSM",
     "MTS3Output",
     "MTS3",
-    "HierarchicalOutput",
-    "HierarchicalMTS3",
     "build_fast_acrkn",
     "build_mts3",
     "build_hierarchical_mts3",
@@ -575,10 +573,6 @@ class MTS3(nn.Module):
         return out.mean, out.var
 
 
-HierarchicalMTS3 = MTS3
-"""Older name of :class:`MTS3` (which now has N levels)."""
-HierarchicalOutput = MTS3Output
-"""Older name of :class:`MTS3Output`."""
 
 
 # ----------------------------------------------------------------------------- builders
@@ -618,11 +612,11 @@ def build_mts3(obs_dim: int, action_dim: int, latent_obs_dim: int, window: int, 
 
 def build_hierarchical_mts3(obs_dim: int, action_dim: int, latent_obs_dim: int, windows: Sequence[int],
                             hidden: Sequence[int] = (32,), bandwidth: int = 0, detach_fast: bool = True,
-                            min_var: float = 1e-4) -> HierarchicalMTS3:
-    """An N-level :class:`HierarchicalMTS3` with ``len(windows)`` task levels (N = that + 1)."""
+                            min_var: float = 1e-4) -> MTS3:
+    """An N-level :class:`MTS3` with ``len(windows)`` task levels (N = that + 1)."""
     m = latent_obs_dim
     fast = build_fast_acrkn(obs_dim, action_dim, m, hidden, bandwidth)
     n = len(windows)
     levels = [TaskSSM(obs_dim, action_dim, m, H, hidden, bandwidth, conditioned=i < n - 1)
               for i, H in enumerate(windows)]
-    return HierarchicalMTS3(fast, levels, BlockMatrix(m, bandwidth) if n else None, detach_fast, min_var=min_var)
+    return MTS3(fast, levels, BlockMatrix(m, bandwidth) if n else None, detach_fast, min_var=min_var)

@@ -30,7 +30,6 @@ from pgm_wm.gaussian import Gaussian, condition, marginalize_linear
 from pgm_wm.mts3 import (
     MTS3,
     BlockMatrix,
-    HierarchicalMTS3,
     TaskSSM,
     build_fast_acrkn,
     build_hierarchical_mts3,
@@ -291,7 +290,7 @@ def test_dropping_the_window_task_cause_gives_the_acrkn():
 def test_one_level_mts3_is_the_acrkn():
     torch.manual_seed(0)
     fast = perturb(build_fast_acrkn(DO, DA, M, (8,)).to(DT))
-    one = HierarchicalMTS3(fast, [])
+    one = MTS3(fast, [])
     obs, act, mask = data(3, 17)
     got, want = one(obs, act, mask), fast(obs, act, mask)
     close(got[0], want[0])
@@ -457,11 +456,11 @@ def test_invalid_inputs_raise_naming_the_argument():
     top = TaskSSM(DO, DA, M, 8)
     low = TaskSSM(DO, DA, M, 4)  # not conditioned
     with pytest.raises(ValueError, match="levels"):
-        HierarchicalMTS3(fast, [low, top], BlockMatrix(M))
+        MTS3(fast, [low, top], BlockMatrix(M))
     with pytest.raises(ValueError, match="levels"):
-        HierarchicalMTS3(fast, [TaskSSM(DO, DA, M, 3, conditioned=True), TaskSSM(DO, DA, M, 8)], BlockMatrix(M))
+        MTS3(fast, [TaskSSM(DO, DA, M, 3, conditioned=True), TaskSSM(DO, DA, M, 8)], BlockMatrix(M))
     with pytest.raises(ValueError, match="task_matrix"):
-        HierarchicalMTS3(fast, [top])
+        MTS3(fast, [top])
     with pytest.raises(ValueError, match="^levels"):
         MTS3(fast, TaskSSM(DO, DA, M, 4, conditioned=True), BlockMatrix(M))
     with pytest.raises(ValueError, match="task_matrix"):
