@@ -11,13 +11,17 @@ float32 rounding.
   :math:`|\sigma^s| < \sqrt{\sigma^u\sigma^l}`.
 * :func:`block_matrix` — assemble ``[[B11, B12], [B21, B22]]`` (e.g. from diagonal blocks).
 
-The filterpy reference (a textbook Kalman filter from an independent implementation) is added
-at the end of this file by the Chapter 1 work.
+* :func:`filterpy_filter`, :func:`filterpy_rts` / :class:`FilterpyRun` — the independent
+  Kalman reference of Chapter 1: filterpy's ``KalmanFilter`` (update before predict, ``None`` for
+  a missing measurement) run sequence by sequence. Needs filterpy (a test and notebook
+  dependency, imported on use, not one of the package's).
 """
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import NamedTuple, Sequence
+
+import numpy as np
 
 import torch
 from torch import Tensor
@@ -25,7 +29,8 @@ from torch import Tensor
 from .factorized import FactorizedBelief
 from .gaussian import Gaussian
 
-__all__ = ["random_spd", "random_gaussian", "random_factorized_belief", "block_matrix"]
+__all__ = ["random_spd", "random_gaussian", "random_factorized_belief", "block_matrix", "FilterpyRun",
+           "filterpy_filter", "filterpy_rts"]
 
 
 def _batch(batch: int | Sequence[int]) -> tuple[int, ...]:
@@ -75,3 +80,54 @@ def block_matrix(b11: Tensor, b12: Tensor, b21: Tensor, b22: Tensor) -> Tensor:
     if len(shapes) != 1 or b11.ndim < 2:
         raise ValueError(f"b11: the four blocks need one common shape (..., m, m), got {sorted(shapes)}")
     return torch.cat([torch.cat([b11, b12], -1), torch.cat([b21, b22], -1)], -2)
+
+
+# ----------------------------------------------------------------------------- the filterpy reference (Chapter 1)
+
+
+class FilterpyRun(NamedTuple):
+    """Per-step filterpy outputs of one sequence: posterior means ``(T, n)`` and covariances
+    ``(T, n, n)``, one-step predictions after each step (``next_means``, ``next_covs``) and the
+    log-likelihood terms ``(T,)`` (0 at missing steps)."""
+
+    means: np.ndarray
+    covs: np.ndarray
+    next_means: np.ndarray
+    next_covs: np.ndarray
+    log_likelihoods: np.ndarray
+
+
+def _make(F, H, Q, R, x0, P0, B=None):
+    from filterpy.kalman import KalmanFilter
+
+    n, m = np.shape(F)[0], np.shape(H)[0]
+    kf = KalmanFilter(dim_x=n, dim_z=m, dim_u=0 if B is None else np.shape(B)[1])
+    kf.F, kf.H, kf.Q, kf.R = np.asarray(F), np.asarray(H), np.asarray(Q), np.asarray(R)
+    kf.x, kf.P = np.array(x0, dtype=float), np.array(P0, dtype=float)
+    if B is not None:
+        kf.B = np.asarray(B)
+    return kf
+
+
+def filterpy_filter(zs, valid, F, H, Q, R, x0, P0, B=None, us=None) -> FilterpyRun:
+    """Run filterpy over one sequence ``zs: (T, m)`` with ``valid: (T,)`` bool (False = missing)
+    and optional control ``us: (T, k)``: for each step update (skipped where missing), record,
+    then predict."""
+    kf = _make(F, H, Q, R, x0, P0, B)
+    means, covs, nmeans, ncovs, lls = [], [], [], [], []
+    for i, (z, ok) in enumerate(zip(np.asarray(zs), np.asarray(valid))):
+        kf.update(z if ok else None)
+        means.append(kf.x.copy())
+        covs.append(kf.P.copy())
+        lls.append(kf.log_likelihood if ok else 0.0)
+        kf.predict(u=None if us is None else np.asarray(us)[i])
+        nmeans.append(kf.x.copy())
+        ncovs.append(kf.P.copy())
+    return FilterpyRun(np.array(means), np.array(covs), np.array(nmeans), np.array(ncovs), np.array(lls))
+
+
+def filterpy_rts(means, covs, F, Q) -> tuple[np.ndarray, np.ndarray]:
+    """filterpy's RTS smoother over filtered ``means (T, n)``, ``covs (T, n, n)``: ``(means, covs)``."""
+    kf = _make(F, np.zeros((1, np.shape(F)[0])), Q, np.eye(1), np.zeros(np.shape(F)[0]), np.eye(np.shape(F)[0]))
+    xs, Ps, _, _ = kf.rts_smoother(np.asarray(means), np.asarray(covs))
+    return xs, Ps

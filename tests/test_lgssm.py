@@ -1,4 +1,4 @@
-"""LinearGaussianSSM and fit_mle (pgm_wm.lgssm). Oracles: filterpy (pgm_wm.testing_kalman); the
+"""LinearGaussianSSM and fit_mle (pgm_wm.lgssm). Oracles: filterpy (pgm_wm.testing); the
 dense joint Gaussian of a whole local-level sequence (scipy's multivariate normal) for the
 log-likelihood and its maximizer (scipy.optimize on the dense likelihood); the closed-form
 diffuse prior of the local-level model."""
@@ -13,7 +13,7 @@ from scipy.stats import multivariate_normal
 
 from pgm_wm.gaussian import Gaussian
 from pgm_wm.lgssm import LinearGaussianSSM, fit_mle
-from pgm_wm.testing_kalman import filterpy_filter, filterpy_rts
+from pgm_wm.testing import filterpy_filter, filterpy_rts
 
 D = torch.float64
 
