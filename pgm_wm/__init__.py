@@ -25,7 +25,8 @@ Modules, in the order the book introduces them:
 * :mod:`pgm_wm.builders`         every chapter's models with the notebooks' defaults
 * :mod:`pgm_wm.layers`           shared network blocks (MLP, Gaussian head, positive maps)
 * :mod:`pgm_wm.testing`          oracles shared by the tests and the notebooks' checks
-* :mod:`pgm_wm.plotting`         plot, diagram and table helpers for the notebooks
+* :mod:`pgm_wm.plotting`         plot and table helpers for the notebooks
+* :mod:`pgm_wm.diagrams`         the models drawn by code (RKN cell, factorized covariance, MTS3, 1-D gain)
 * :mod:`pgm_wm.datasets`         bundled datasets, their simulators and oracles, windows, ``SequenceData``
 * :mod:`pgm_wm.experiments`      multi-seed experiments of the model chapters (``python -m pgm_wm.experiments``)
 

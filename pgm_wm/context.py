@@ -25,7 +25,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_last_dims, check_tensor
+from ._checks import check_tensor
 from .metrics import gaussian_nll
 from .training import FitHistory, fit
 

@@ -10,13 +10,13 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from pgm_wm import plotting  # noqa: E402
+from pgm_wm import diagrams  # noqa: E402
 
 DIAGRAMS = [
-    plotting.plot_rkn_cell,
-    plotting.plot_factorized_covariance,
-    plotting.plot_mts3_graphical_model,
-    plotting.plot_gain_as_weighted_average,
+    diagrams.plot_rkn_cell,
+    diagrams.plot_factorized_covariance,
+    diagrams.plot_mts3_graphical_model,
+    diagrams.plot_gain_as_weighted_average,
 ]
 
 
@@ -45,7 +45,7 @@ def test_diagram_draws_into_a_given_axis(draw):
 
 @pytest.mark.parametrize("m", [1, 3, 8])
 def test_factorized_covariance_colours_exactly_3m_entries(m):
-    fig = plotting.plot_factorized_covariance(m)
+    fig = diagrams.plot_factorized_covariance(m)
     try:
         cells = [p for p in fig.axes[0].patches if p.get_width() == 1 and p.get_height() == 1]
         assert len(cells) == (2 * m) ** 2
@@ -60,7 +60,7 @@ def test_factorized_covariance_colours_exactly_3m_entries(m):
 
 def test_gain_picture_shows_the_precision_weighted_average():
     prior_mean, prior_var, y, r = -1.0, 2.0, 3.0, 0.5
-    fig = plotting.plot_gain_as_weighted_average(prior_mean, prior_var, y, r)
+    fig = diagrams.plot_gain_as_weighted_average(prior_mean, prior_var, y, r)
     try:
         lines = fig.axes[0].get_lines()
         post = lines[4]  # prior, its marker, likelihood, its marker, posterior
@@ -78,10 +78,10 @@ def test_gain_picture_shows_the_precision_weighted_average():
 @pytest.mark.parametrize(
     "call, argument",
     [
-        (lambda: plotting.plot_factorized_covariance(0), "m"),
-        (lambda: plotting.plot_mts3_graphical_model(steps=1), "steps"),
-        (lambda: plotting.plot_gain_as_weighted_average(prior_var=0.0), "prior_var"),
-        (lambda: plotting.plot_gain_as_weighted_average(obs_var=-1.0), "obs_var"),
+        (lambda: diagrams.plot_factorized_covariance(0), "m"),
+        (lambda: diagrams.plot_mts3_graphical_model(steps=1), "steps"),
+        (lambda: diagrams.plot_gain_as_weighted_average(prior_var=0.0), "prior_var"),
+        (lambda: diagrams.plot_gain_as_weighted_average(obs_var=-1.0), "obs_var"),
     ],
 )
 def test_diagrams_reject_bad_arguments(call, argument):

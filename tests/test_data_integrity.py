@@ -17,7 +17,7 @@ import pytest
 
 from pgm_wm.datasets import DataFileError, data_dir, load
 from pgm_wm.datasets import _io
-from pgm_wm.datasets._io import read_npz, sha256_file, write_npz, write_sha256sums
+from pgm_wm.datasets._io import read_npz, write_npz, write_sha256sums
 
 SMALL_FILES = ("nile.csv", "tracking.npz")
 

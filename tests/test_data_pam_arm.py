@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from pgm_wm.datasets import compute_stats, data_dir, load
-from pgm_wm.datasets._io import read_npz, write_npz
+from pgm_wm.datasets._io import read_npz
 from pgm_wm.datasets.pam_arm import (SPLIT_FRACTIONS, SPLIT_SEED, action_representation_check, convert,
                                      find_source)
 from pgm_wm.datasets.sequences import split_indices
@@ -70,7 +70,7 @@ def test_licence_citation_and_provenance_travel_with_the_file():
 @needs_source
 def test_bundled_values_equal_the_source_exactly(splits):
     with np.load(SOURCE, allow_pickle=False) as src:
-        ob, act, length = src["ob"], src["action"], src["length"]
+        ob, act = src["ob"], src["action"]
     for data in splits.values():
         idx = np.asarray(data.meta["split_info"]["indices"])
         v = data.valid.numpy()

@@ -73,7 +73,7 @@ def context_features(
     """
     check_tensor("obs", obs, 2)
     check_tensor("actions", actions, 2)
-    T, do = obs.shape[-2], obs.shape[-1]
+    do = obs.shape[-1]
     if valid is None:
         valid = torch.ones(obs.shape[:-1], dtype=torch.bool, device=obs.device)
     valid = check_mask("valid", valid, tuple(obs.shape[:-1]))
