@@ -69,7 +69,7 @@ def test_run_experiment_trains_scores_and_writes(tmp_path):
     assert len(runs) == 2 and all(r["epochs"] >= 1 and r["cpu_s"] > 0 for r in runs)
     g = np.asarray(back["models"]["gru"]["sq_err"])
     assert g.shape[0] == 2 and not np.array_equal(g[0], g[1])       # two seeds, two training runs
-    assert back["provenance"]["seeds"] == [0, 1] and back["provenance"]["budget_cpu_s"] == 0.2
+    assert back["provenance"]["seeds"] == [0, 1] and back["provenance"]["budget_cpu_s"] == 0.3
     sq = np.asarray(back["models"]["arx"]["sq_err"])
     assert sq.shape[0] == 2 and np.array_equal(sq[0], sq[1])       # deterministic rows repeat per seed
     text = conclusions(back, ["arx", "repeat", "mean"], n_boot=200)

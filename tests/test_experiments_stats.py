@@ -113,3 +113,15 @@ def test_results_files_are_checked(tmp_path):
         save_results(tmp_path / "x.json", res)
     with pytest.raises(ValueError, match="^candidates"):
         conclusions(_fake_results(np.random.default_rng(7)), ["good", "nope"])
+
+
+def test_report_renders_a_saved_file(tmp_path, monkeypatch):
+    import pgm_wm.experiments.results as results
+
+    monkeypatch.setattr(results, "_REPO", tmp_path)
+    res = _fake_results(np.random.default_rng(8))
+    for e in res["models"].values():
+        e["trained"] = True
+    save_results(results.results_path("demo"), res)
+    text = results.report("demo", ["good", "bad"])
+    assert "| good |" in text and "At k = 10, good has the lowest RMSE" in text and "Produced by" in text

@@ -37,6 +37,8 @@ __all__ = [
     "summary_table",
     "conclusions",
     "provenance_text",
+    "results_path",
+    "report",
 ]
 
 _REPO = Path(__file__).resolve().parents[2]
@@ -204,3 +206,23 @@ def provenance_text(results: Mapping[str, Any]) -> str:
             f"{mach.get('torch_threads', '?')} thread(s)); {len(seeds)} seeds, a training budget of "
             f"{p.get('budget_cpu_s', '?')} CPU seconds per model, {n_win} test windows; the whole run took "
             f"{p.get('wall_s', '?')} s.")
+
+
+def results_path(name: str) -> Path:
+    """``results/<name>.json`` of this checkout (where ``python -m pgm_wm.experiments`` writes)."""
+    return _REPO / "results" / f"{name}.json"
+
+
+def report(name: str, candidates: Sequence[str] | None = None, fmt: str = ".3g") -> str:
+    """Markdown for a chapter: the multi-seed table with intervals, one computed sentence per
+    horizon comparing ``candidates`` (default: the trained models), and the provenance."""
+    res = load_results(results_path(name))
+    if candidates is None:
+        candidates = [n for n, e in res["models"].items() if e.get("trained", True)]
+    seeds = len(res["provenance"].get("seeds", []))
+    units = f" ({res['units']})" if res.get("units") else ""
+    lines = [f"**{res.get('title', name)}: test RMSE{units} at horizon k, mean over {seeds} seeds and the test "
+             f"windows, with 95 % bootstrap intervals (seeds × windows).**", "", summary_table(res, fmt=fmt), ""]
+    lines += [f"* {s}" for s in conclusions(res, candidates)]
+    lines += ["", provenance_text(res)]
+    return "\n".join(lines)
