@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import math
 import os
 import platform
 import subprocess
@@ -215,14 +216,31 @@ def results_path(name: str) -> Path:
 
 def report(name: str, candidates: Sequence[str] | None = None, fmt: str = ".3g") -> str:
     """Markdown for a chapter: the multi-seed table with intervals, one computed sentence per
-    horizon comparing ``candidates`` (default: the trained models), and the provenance."""
+    horizon comparing ``candidates`` (default: the trained models), one per horizon comparing the
+    best candidate with the best reference row that is not an oracle (repeat-last, training mean,
+    linear ARX), and the provenance."""
     res = load_results(results_path(name))
+    models = res["models"]
     if candidates is None:
-        candidates = [n for n, e in res["models"].items() if e.get("trained", True)]
+        candidates = [n for n, e in models.items() if e.get("trained", True)]
+    references = [n for n, e in models.items() if not e.get("trained", True) and "oracle" not in n]
     seeds = len(res["provenance"].get("seeds", []))
     units = f" ({res['units']})" if res.get("units") else ""
     lines = [f"**{res.get('title', name)}: test RMSE{units} at horizon k, mean over {seeds} seeds and the test "
-             f"windows, with 95 % bootstrap intervals (seeds × windows).**", "", summary_table(res, fmt=fmt), ""]
+             f"windows, with 95 % bootstrap intervals (seeds × windows).**", "", summary_table(res, fmt=fmt), "",
+             "Among the trained models:", ""]
     lines += [f"* {s}" for s in conclusions(res, candidates)]
+    if references:
+        lines += ["", "Against the reference rows:", ""]
+        scale = float(res.get("scale", 1.0))
+        for i, h in enumerate(res["horizons"]):
+            sq = {n: np.asarray(models[n]["sq_err"], dtype=np.float64)[:, i] for n in [*candidates, *references]}
+            best = min(candidates, key=lambda n: float(sq[n].mean()))
+            ref = min(references, key=lambda n: float(sq[n].mean()))
+            ratio = paired_ratio(sq[best], sq[ref])
+            word = "beats" if ratio.hi < 1.0 else "loses to" if ratio.lo > 1.0 else "is not distinguishable from"
+            lines.append(f"* At k = {h}, the best trained model ({best}, {math.sqrt(sq[best].mean()) * scale:{fmt}}) "
+                         f"{word} the best reference row ({ref}, {math.sqrt(sq[ref].mean()) * scale:{fmt}}): "
+                         f"ratio {ratio.format('.3f')}.")
     lines += ["", provenance_text(res)]
     return "\n".join(lines)
