@@ -122,8 +122,10 @@ def train_hiprssm(model: HiPRSSMWindowModel, s: Splits, p: Protocol, seed: int, 
     training split (:func:`pgm_wm.datasets.windows.make_windows`), each with the previous window as
     its (fully observed) context set; inside the window the first ``context_len - H`` steps are
     always observed (as the baselines' steps after their first window), the rest kept with
-    ``keep_prob`` and, with ``open_loop_prob``, all hidden. Same budget, batch size, learning rate
-    and validation windows as every other model."""
+    ``keep_prob`` and, with ``open_loop_prob``, hidden from a uniformly drawn step on
+    (:func:`pgm_wm.training.observation_mask`; the same distribution over the second window as in
+    the baselines' crops). Same budget, batch size, learning rate and validation windows as every
+    other model."""
     from ..datasets.windows import make_windows
     from ..training import fit, imputation_loss_fn
 
