@@ -8,15 +8,18 @@ Model sizes are the chapters' notebook defaults; the budget per model is set on 
 from __future__ import annotations
 
 from functools import lru_cache
-from typing import Callable
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import torch
-from torch import nn
+from torch import Tensor, nn
 
 from ..acrkn import difference_scaling
 from ..builders import build_acrkn, build_baseline, build_hierarchical_mts3, build_hiprssm, build_mts3
 from ..datasets import load
 from .runner import Experiment, ModelSpec, Protocol, Splits, validation_rmse
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..training import FitHistory
 
 __all__ = ["EXPERIMENTS", "ch4_experiment", "ch5_experiment", "ch6_experiment", "HiPRSSMWindowModel", "train_hiprssm"]
 
@@ -106,18 +109,20 @@ class HiPRSSMWindowModel(nn.Module):
     (:func:`pgm_wm.evaluation.trajectory_world_model`), window ``k`` getting its task from the
     interactions of window ``k - 1`` and restarting its state filter at its first step."""
 
-    def __init__(self, hip: nn.Module, window: int, diff_shift, diff_scale) -> None:
+    def __init__(self, hip: nn.Module, window: int, diff_shift: Tensor | Sequence[float],
+                 diff_scale: Tensor | Sequence[float]) -> None:
         super().__init__()
         self.hip, self.window = hip, window
         self.register_buffer("diff_shift", torch.as_tensor(diff_shift))
         self.register_buffer("diff_scale", torch.as_tensor(diff_scale))
 
-    def forward(self, obs, actions, mask=None):
+    def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
         from ..evaluation import trajectory_world_model
         return trajectory_world_model(self.hip, self.window, self.diff_shift, self.diff_scale)(obs, actions, mask)
 
 
-def train_hiprssm(model: HiPRSSMWindowModel, s: Splits, p: Protocol, seed: int, budget_s: float, valid_fn):
+def train_hiprssm(model: HiPRSSMWindowModel, s: Splits, p: Protocol, seed: int, budget_s: float,
+                  valid_fn: Callable[[], float]) -> FitHistory:
     """The HiP-RSSM's own training under the experiment's protocol: windows of ``H`` steps of the
     training split (:func:`pgm_wm.datasets.windows.make_windows`), each with the previous window as
     its (fully observed) context set; inside the window the first ``context_len - H`` steps are
