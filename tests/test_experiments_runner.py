@@ -102,3 +102,23 @@ def test_oracle_rows_are_scored_on_the_runner_windows():
         score_oracle(shifted, SPLITS, PROTOCOL)
     with pytest.raises(ValueError, match="^build"):
         ModelSpec()
+
+
+def test_a_model_with_its_own_training_gets_the_same_budget_seed_and_validation():
+    from pgm_wm.builders import build_baseline
+    from pgm_wm.experiments.runner import train_model, validation_rmse
+    from pgm_wm.training import FitHistory
+
+    calls = {}
+
+    def own_train(model, splits, protocol, seed, budget_s, valid_fn):
+        calls.update(seed=seed, budget=budget_s, protocol=protocol, valid=valid_fn(),
+                     reference=validation_rmse(model, splits, protocol))
+        return FitHistory(train_loss=[1.0, 0.9, 0.8], valid_loss=[calls["valid"]])
+
+    spec = ModelSpec(lambda s: build_baseline("gru", 1, 1, hidden=8, predict_differences=False), train=own_train)
+    exp = Experiment("tiny", "tiny", lambda: SPLITS, {"own": spec}, PROTOCOL)
+    _, info = train_model(exp, "own", seed=4, budget_s=0.7)
+    assert calls["seed"] == 4 and calls["budget"] == 0.7 and calls["protocol"] is PROTOCOL
+    assert calls["valid"] == pytest.approx(calls["reference"])          # the generic validation windows
+    assert info["epochs"] == 3 and info["best_valid"] == calls["valid"]

@@ -8,16 +8,20 @@ Model sizes are the chapters' notebook defaults; the budget per model is set on 
 from __future__ import annotations
 
 from functools import lru_cache
-from typing import Callable
+from typing import TYPE_CHECKING, Callable, Sequence
 
-from torch import nn
+import torch
+from torch import Tensor, nn
 
 from ..acrkn import difference_scaling
-from ..builders import build_acrkn, build_baseline, build_hierarchical_mts3, build_mts3
+from ..builders import build_acrkn, build_baseline, build_hierarchical_mts3, build_hiprssm, build_mts3
 from ..datasets import load
 from .runner import Experiment, ModelSpec, Protocol, Splits, validation_rmse
 
-__all__ = ["EXPERIMENTS", "ch4_experiment", "ch6_experiment"]
+if TYPE_CHECKING:  # pragma: no cover
+    from ..training import FitHistory
+
+__all__ = ["EXPERIMENTS", "ch4_experiment", "ch5_experiment", "ch6_experiment", "HiPRSSMWindowModel", "train_hiprssm"]
 
 
 @lru_cache(maxsize=None)
@@ -100,6 +104,76 @@ def _absolute(model: nn.Module) -> nn.Module:
     return model
 
 
+class HiPRSSMWindowModel(nn.Module):
+    """A HiP-RSSM scored like every other model: run window by window over the input
+    (:func:`pgm_wm.evaluation.trajectory_world_model`), window ``k`` getting its task from the
+    interactions of window ``k - 1`` and restarting its state filter at its first step."""
+
+    def __init__(self, hip: nn.Module, window: int, diff_shift: Tensor | Sequence[float],
+                 diff_scale: Tensor | Sequence[float]) -> None:
+        super().__init__()
+        self.hip, self.window = hip, window
+        self.register_buffer("diff_shift", torch.as_tensor(diff_shift))
+        self.register_buffer("diff_scale", torch.as_tensor(diff_scale))
+
+    def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        from ..evaluation import trajectory_world_model
+        return trajectory_world_model(self.hip, self.window, self.diff_shift, self.diff_scale)(obs, actions, mask)
+
+
+def train_hiprssm(model: HiPRSSMWindowModel, s: Splits, p: Protocol, seed: int, budget_s: float,
+                  valid_fn: Callable[[], float]) -> FitHistory:
+    """The HiP-RSSM's own training under the experiment's protocol: windows of ``H`` steps of the
+    training split (:func:`pgm_wm.datasets.windows.make_windows`), each with the previous window as
+    its (fully observed) context set; inside the window the first ``context_len - H`` steps are
+    always observed (as the baselines' steps after their first window), the rest kept with
+    ``keep_prob`` and, with ``open_loop_prob``, hidden from a uniformly drawn step on
+    (:func:`pgm_wm.training.observation_mask`; the same distribution over the second window as in
+    the baselines' crops). Same budget, batch size, learning rate and validation windows as every
+    other model."""
+    from ..datasets.windows import make_windows
+    from ..training import fit, imputation_loss_fn
+
+    H = model.window
+    obs, act, val = s.normalized("train")
+    w = make_windows(obs, act, H, val, None, model.diff_shift, model.diff_scale)
+    loss_fn = imputation_loss_fn(model.hip, p.keep_prob, p.context_len - H, "nll", p.open_loop_prob)
+    return fit(loss_fn, model.hip, w.tensors(), p.batch_size, lr=p.lr, seed=seed, valid_fn=valid_fn,
+               progress=False, budget_s=budget_s, patience=p.patience, desc="HiP-RSSM")
+
+
+def ch5_experiment(dataset: str = "hidden_payload_arm", window: int = 25, observed: int = 12) -> Experiment:
+    """Chapter 5: HiP-RSSM (linear task term, set encoder) against its own ac-RKN core without the
+    task cause, the Chapter 4 ac-RKN, LSTM, GRU and the reference rows. Every evaluation window is
+    two task windows of ``H = window`` steps: the first fully observed (the HiP-RSSM's context set,
+    every other model's history), in the second the first ``observed`` steps observed and the rest
+    (``H - observed``) predicted open loop. Baselines train on crops of ``2H`` steps with the same
+    always-observed prefix, the HiP-RSSM on windows with the previous window as context
+    (:func:`train_hiprssm`)."""
+    H, c = window, observed
+    sizes = dict(latent_obs_dim=8, hidden=32, num_basis=4, bandwidth=2)
+
+    def hip(s: Splits) -> nn.Module:
+        r = _readout(s)
+        return HiPRSSMWindowModel(build_hiprssm(*_dims(s), 8, 8, 32, 4, 2, task="linear", **r), H,
+                                  r["diff_shift"], r["diff_scale"])
+
+    models: dict[str, ModelSpec] = {
+        "HiP-RSSM (linear task term)": ModelSpec(hip, train=train_hiprssm),
+        "its ac-RKN core, no task": ModelSpec(lambda s: build_acrkn(*_dims(s), control="mlp", **sizes, **_readout(s))),
+        "ac-RKN (Chapter 4)": ModelSpec(lambda s: build_acrkn(*_dims(s), **_readout(s))),
+        "LSTM": ModelSpec(lambda s: build_baseline("lstm", *_dims(s), **_readout(s))),
+        "GRU": ModelSpec(lambda s: build_baseline("gru", *_dims(s), **_readout(s))),
+    }
+    protocol = Protocol(context_len=H + c, horizon=H - c, horizons=(1, 5, 10, H - c), eval_stride=2 * H,
+                        valid_stride=2 * H, batch_size=64, keep_prob=0.5, open_loop_prob=0.5, lr=5e-3)
+    models.update(_reference_models(protocol))
+    models.update(_oracle_models(dataset))
+    return Experiment(f"ch5_{dataset}", f"Chapter 5, open-loop prediction in the second of two task windows on {dataset}",
+                      lambda: _splits(dataset), models, protocol, units="rad", scale=1.0,
+                      notes={"window": H, "observed_in_window": c, "dt_s": 0.02})
+
+
 def ch6_experiment(dataset: str = "slow_payload_arm", window: int = 25) -> Experiment:
     """Chapter 6: MTS3 (window ``H``) against its fast level alone (an ac-RKN with a constant
     transition and no task), the Chapter 4 ac-RKN, LSTM, GRU, a Transformer and the reference rows;
@@ -127,5 +201,6 @@ def ch6_experiment(dataset: str = "slow_payload_arm", window: int = 25) -> Exper
 EXPERIMENTS: dict[str, Callable[[], Experiment]] = {
     "ch4": ch4_experiment,
     "ch4_real": lambda: ch4_experiment("pam_arm", oracle=False),
+    "ch5": ch5_experiment,
     "ch6": ch6_experiment,
 }

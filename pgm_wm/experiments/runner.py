@@ -102,11 +102,18 @@ class ModelSpec:
     scored once. ``oracle(protocol) -> (mean, target)`` instead gives predictions directly, in
     original units, for the test windows (the physics oracle of a simulated dataset,
     :func:`pgm_wm.datasets.oracles.oracle_windows`); it has no predictive variance, so no NLL.
+
+    ``train(model, splits, protocol, seed, budget_s, valid_fn) -> FitHistory`` replaces the
+    generic training (crops of ``protocol.window`` steps, :func:`pgm_wm.training.imputation_loss_fn`)
+    for a model that needs its own training data, e.g. the HiP-RSSM's windows with context sets;
+    it must call :func:`pgm_wm.training.fit` with ``budget_s`` and ``valid_fn`` (the same open-loop
+    validation windows as every other model) so the budget and the selection stay the same.
     """
 
     build: Callable[[Splits], nn.Module] | None = None
     trained: bool = True
     oracle: Callable[[Protocol], tuple[Tensor, Tensor]] | None = None
+    train: Callable[..., Any] | None = None
 
     def __post_init__(self) -> None:
         if (self.build is None) == (self.oracle is None):
@@ -178,6 +185,10 @@ def train_model(exp: Experiment, name: str, seed: int, budget_s: float) -> tuple
     if not spec.trained:
         return model.eval(), {"cpu_s": round(time.process_time() - start, 2), "epochs": 0}
     p = exp.protocol
+    if spec.train is not None:
+        hist = spec.train(model, splits, p, seed, budget_s, _valid_score(model, splits, p))
+        return model.eval(), {"cpu_s": round(time.process_time() - start, 2), "epochs": hist.epochs,
+                              "best_valid": hist.best_valid_loss}
     obs, act, val = splits.normalized("train")
     loss_fn = imputation_loss_fn(model, p.keep_prob, p.context_len, "nll", p.open_loop_prob,
                                  window=p.mask_window, max_window_drop=p.max_window_drop)
