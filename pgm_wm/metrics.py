@@ -29,7 +29,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from ._checks import as_tensor, check_tensor
+from ._checks import as_tensor, check_finite, check_positive, check_same_dtype, check_tensor
 
 __all__ = [
     "rmse",
@@ -68,6 +68,7 @@ def _reduce(values: Tensor, weights: Tensor, dim: Dims) -> Tensor:
 def _check_pair(pred: Tensor, target: Tensor, pred_name: str = "pred") -> None:
     check_tensor(pred_name, pred)
     check_tensor("target", target)
+    check_same_dtype((pred_name, "target"), (pred, target))
     if pred.shape != target.shape:
         raise ValueError(f"target: shape {tuple(target.shape)} differs from {pred_name}'s {tuple(pred.shape)}")
 
@@ -92,8 +93,9 @@ def _nll_terms(mean: Tensor, var: Tensor, target: Tensor) -> Tensor:
     check_tensor("var", var)
     if var.shape != mean.shape:
         raise ValueError(f"var: shape {tuple(var.shape)} differs from mean's {tuple(mean.shape)}")
-    if not bool((var > 0).all()):
-        raise ValueError("var: variances must be strictly positive")
+    check_same_dtype(("mean", "var"), (mean, var))
+    check_positive("var", var.detach())
+    check_finite("mean", mean.detach())
     return 0.5 * (math.log(2 * math.pi) + var.log() + (target - mean) ** 2 / var)
 
 
