@@ -333,6 +333,10 @@ def _check_filter_args(prior: FactorizedBelief, A: Tensor, trans_var: Tensor, ob
     T = observation.mean.shape[-2]
     if T == 0:
         raise ValueError("observation: need at least one time step, got T = 0")
+    check_same_dtype(("prior.mean", "prior.var_upper", "prior.var_lower", "prior.cov_side", "A", "trans_var",
+                      "observation.mean", "observation.var"), (prior.mean, prior.var_upper, prior.var_lower,
+                                                               prior.cov_side, A, trans_var, observation.mean,
+                                                               observation.var))
     if mask is not None:
         mask = check_mask("mask", mask, tuple(observation.mean.shape[:-1]))
     if validate:
