@@ -485,6 +485,8 @@ class RKN(nn.Module):
         check_tensor("obs", obs, 3)
         if obs.shape[1] == 0:
             raise ValueError("obs: need at least one time step, got T = 0")
+        if obs.ndim != 3:
+            raise ValueError(f"obs: expected shape (B, T, d) (images flattened to H*W), got {tuple(obs.shape)}")
         check_same_dtype(("obs",), (obs,))
         check_input_dtype("obs", obs, module_dtype(self))
         if mask is not None:

@@ -155,3 +155,23 @@ def test_load_invalid_arguments():
     raises_named("name", lambda: load("no_such_dataset"))
     raises_named("split", lambda: load("nile", "no_such_split"))
     raises_named("dtype", lambda: load("nile", "train", dtype=torch.int64))
+
+
+@FUZZ_SLOW
+@given(seeds, st.integers(1, 5), st.sampled_from(["valid", "unflattened", "nan", "T0", "float64", "mask"]))
+def test_image_rkn_entry_point(seed, T, kind):
+    torch.manual_seed(0)
+    model = builders.build_rkn((8, 8), DO, latent_obs_dim=3, num_basis=3, bandwidth=1, decoder_hidden=(8,))
+    g = gen(seed)
+    obs = torch.rand(2, T, 64, generator=g)
+    mask = torch.rand(2, T, generator=g) < 0.5
+    with torch.no_grad():
+        if kind == "valid":
+            mean, var = model(obs.masked_fill(~mask[..., None], float("nan")), mask)
+            assert finite(mean, var) and bool((var > 0).all())
+            return
+        name = "mask" if kind == "mask" else "obs"
+        obs = {"unflattened": obs.reshape(2, T, 8, 8), "nan": obs.masked_fill(torch.ones_like(obs, dtype=torch.bool),
+               float("nan")), "T0": obs[:, :0], "float64": obs.double(), "mask": obs}[kind]
+        mask = {"T0": mask[:, :0], "mask": mask[:1], "nan": None}.get(kind, mask)
+        raises_named(name, lambda: model(obs, mask))
