@@ -253,6 +253,7 @@ def factorized_predict(
                       "A22", "trans_var"), (prior.mean, prior.var_upper, prior.var_lower, prior.cov_side, A11, A12,
                                             A21, A22, trans_var))
     if validate:
+        prior.validate("prior")
         check_nonnegative("trans_var", trans_var)
     A = torch.cat([torch.cat(torch.broadcast_tensors(A11, A12), dim=-1),
                    torch.cat(torch.broadcast_tensors(A21, A22), dim=-1)], dim=-2)

@@ -84,7 +84,9 @@ def rmse(pred: Tensor, target: Tensor, mask: Tensor | None = None, dim: Dims = N
 def gaussian_nll(mean: Tensor, var: Tensor, target: Tensor, mask: Tensor | None = None, dim: Dims = None) -> Tensor:
     r"""Per-dimension average Gaussian negative log-likelihood, Eq. (metric-nll), with
     :math:`\tfrac12\log 2\pi` included. ``var`` must be positive. Same masks/dims as :func:`rmse`."""
-    return _reduce(_nll_terms(mean, var, target), _weights("mask", mask, mean), dim)
+    terms, w = _nll_terms(mean, var, target), _weights("mask", mask, mean)
+    check_finite("target", target.detach()[w.detach() > 0])
+    return _reduce(terms, w, dim)
 
 
 def _nll_terms(mean: Tensor, var: Tensor, target: Tensor) -> Tensor:
