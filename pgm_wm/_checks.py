@@ -195,3 +195,24 @@ def check_same_dtype(names: Sequence[str], tensors: Sequence[Tensor | None]) -> 
             raise ValueError(f"{name}: dtype {x.dtype} differs from {first}'s dtype {dtype}; "
                              "convert all inputs to one dtype")
     return dtype if dtype is not None else torch.get_default_dtype()
+
+
+__all__ += ["check_same_dtype", "module_dtype", "check_input_dtype"]
+
+
+def module_dtype(module: object) -> torch.dtype | None:
+    """The dtype of a module's first floating-point parameter or buffer (``None`` if it has none)."""
+    tensors = list(getattr(module, "parameters", lambda: [])()) + list(getattr(module, "buffers", lambda: [])())
+    for t in tensors:
+        if torch.is_floating_point(t):
+            return t.dtype
+    return None
+
+
+def check_input_dtype(name: str, x: Tensor, dtype: torch.dtype | None) -> Tensor:
+    """Require ``x`` to have a model's dtype ``dtype`` (skipped when ``dtype`` is None): a
+    float64 tensor fed to a float32 model is an error naming ``name``, not a raw matmul error."""
+    if dtype is not None and x.dtype != dtype:
+        raise ValueError(f"{name}: dtype {x.dtype} differs from the model's dtype {dtype}; "
+                         f"convert with {name}.to({dtype}) (or the model with .to({x.dtype}))")
+    return x

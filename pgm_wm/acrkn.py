@@ -46,7 +46,8 @@ from typing import Any, Callable, Mapping, Sequence
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_finite, check_last_dims, check_mask, check_tensor
+from ._checks import (check_finite, check_input_dtype, check_last_dims, check_mask, check_same_dtype, check_tensor,
+                      module_dtype)
 from .beliefs import FactorizedBelief
 from .factorized import factorized_predict_from_matrix
 from .filtering import FilterResult
@@ -323,12 +324,19 @@ class DifferenceReadout(nn.Module):
 
 
 def check_sequences(obs: Tensor, actions: Tensor | None, mask: Tensor | None,
-                     obs_dim: int | None = None, action_dim: int | None = None) -> Tensor | None:
-    """Check ``obs: (B, T, do)``, ``actions: (B, T, da)``, ``mask: (B, T)``; return the bool mask."""
+                     obs_dim: int | None = None, action_dim: int | None = None,
+                     model: object | None = None) -> Tensor | None:
+    """Check ``obs: (B, T, do)``, ``actions: (B, T, da)``, ``mask: (B, T)``; return the bool mask.
+
+    One dtype rule: ``obs`` and ``actions`` float32 or float64, of one dtype, and (when ``model``
+    is given) the dtype of the model's parameters. Observations must be finite where observed."""
     check_tensor("obs", obs, 3)
     B, T = obs.shape[:2]
     if T == 0:
         raise ValueError("obs: need at least one time step, got T = 0")
+    check_same_dtype(("obs", "actions"), (obs, actions))
+    if model is not None:
+        check_input_dtype("obs", obs, module_dtype(model))
     if obs_dim is not None:
         check_last_dims("obs", obs, (obs_dim,))
     if actions is not None:
@@ -340,6 +348,7 @@ def check_sequences(obs: Tensor, actions: Tensor | None, mask: Tensor | None,
         check_finite("actions", actions)
     if mask is not None:
         mask = check_mask("mask", mask, (B, T))
+    check_finite("obs", obs.detach() if mask is None else obs.detach()[mask])
     return mask
 
 
@@ -419,7 +428,7 @@ class AcRKN(nn.Module):
         ``extra_causes`` are further independent causes of the same predict step (Chapter 5 adds
         a latent task there), appended after :meth:`causes`.
         """
-        mask = check_sequences(obs, actions, mask)
+        mask = check_sequences(obs, actions, mask, model=self)
         w = self.rkn.encode(obs, mask)
         return self.rkn.filter(w, mask=mask, causes=self.causes(actions) + list(extra_causes), init=init)
 
@@ -438,7 +447,7 @@ class AcRKN(nn.Module):
 
         Uses only observations with ``mask`` True at indices ``<= t`` and actions ``<= t``.
         """
-        mask = check_sequences(obs, actions, mask, self.obs_dim)
+        mask = check_sequences(obs, actions, mask, self.obs_dim, model=self)
         out = self.filter(obs, actions, mask)
         return self.decode_predictions(out, obs, mask)
 

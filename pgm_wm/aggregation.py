@@ -45,7 +45,7 @@ from typing import Sequence
 import torch
 from torch import Tensor, nn
 
-from ._checks import as_tensor, check_finite, check_last_dims, check_mask, check_positive, check_tensor
+from ._checks import as_tensor, check_finite, check_last_dims, check_mask, check_positive, check_same_dtype, check_tensor
 from .beliefs import DiagGaussian, FactorizedBelief
 from .factorized import block_inverse
 from .layers import mlp, positive_variance
@@ -160,6 +160,9 @@ def set_update(
         raise ValueError(f"observation: expected a DiagGaussian (r, r_var), got {type(observation).__name__}")
     r, r_var = observation.mean, observation.var
     mask = _check_set(r, r_var, mask, validate)
+    if isinstance(prior, (DiagGaussian, FactorizedBelief)):
+        check_same_dtype(("observation.mean", "observation.var", "prior.mean", "prior.var"),
+                         (r, r_var, prior.mean, prior.var))
     if isinstance(prior, DiagGaussian):
         d = r.shape[-1]
         check_last_dims("prior.mean", prior.mean, (d,))
@@ -219,6 +222,9 @@ def bayesian_aggregation(
         batch shape, including batch size 1 and ``N = 1``.
     """
     check_tensor("r", r, min_ndim=2)
+    check_tensor("r_var", r_var, min_ndim=2)
+    check_same_dtype(("r", "r_var", "prior_mean", "prior_var"),
+                     (r, r_var, *(v if isinstance(v, Tensor) else None for v in (prior_mean, prior_var))))
     d = r.shape[-1]
     mu0 = _prior("prior_mean", prior_mean, 0.0, r, d)
     var0 = _prior("prior_var", prior_var, 1.0, r, d)

@@ -68,7 +68,7 @@ class FeedbackModel(nn.Module):
 
     def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """``(mean, var)`` each ``(B, T, do)``; index ``t`` predicts ``obs[:, t + 1]``."""
-        mask = check_sequences(obs, actions, mask, self.obs_dim, self.action_dim)
+        mask = check_sequences(obs, actions, mask, self.obs_dim, self.action_dim, model=self)
         B, T = obs.shape[:2]
         if mask is None:
             mask = torch.ones(B, T, dtype=torch.bool, device=obs.device)
@@ -268,7 +268,7 @@ class TransformerBaseline(nn.Module):
 
     def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """``(mean, var)`` each ``(B, T, do)``; index ``t`` predicts ``obs[:, t + 1]``."""
-        mask = check_sequences(obs, actions, mask, self.obs_dim, self.action_dim)
+        mask = check_sequences(obs, actions, mask, self.obs_dim, self.action_dim, model=self)
         B, T = obs.shape[:2]
         flag = (torch.ones(B, T, 1, dtype=obs.dtype, device=obs.device) if mask is None
                 else mask[..., None].to(obs.dtype))
@@ -452,7 +452,7 @@ class LinearARX(nn.Module):
         return model
 
     def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        mask = check_sequences(obs, actions, mask, self.obs_dim, self.action_dim)
+        mask = check_sequences(obs, actions, mask, self.obs_dim, self.action_dim, model=self)
         W, c = self.weight.to(obs.dtype), self.bias.to(obs.dtype)
         p, do = self.order, self.obs_dim
         var = self.var.to(obs.dtype).expand(obs.shape)

@@ -11,6 +11,16 @@ Each builder only wires the public constructors together; pass other sizes to ex
 * Chapter 5: :func:`build_hiprssm`.
 * Chapter 6: :func:`build_fast_acrkn`, :func:`build_mts3`, :func:`build_hierarchical_mts3`
   (defined in :mod:`pgm_wm.mts3`, re-exported here).
+
+Saving and loading: save the ``state_dict`` and rebuild with the same builder call.
+``torch.save(model, path)`` pickles the classes themselves, which ``torch.load``'s default
+``weights_only=True`` (torch >= 2.6) refuses to unpickle; a ``state_dict`` holds only tensors,
+loads with the default ``torch.load`` and gives bit-identical predictions (tested in
+``tests/test_fuzz_saving.py``)::
+
+    torch.save(model.state_dict(), "acrkn.pt")
+    model = build_acrkn(obs_dim=2, action_dim=2)          # the same arguments as before
+    model.load_state_dict(torch.load("acrkn.pt"))
 """
 
 from __future__ import annotations

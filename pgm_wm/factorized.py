@@ -40,7 +40,8 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from ._checks import check_finite, check_last_dims, check_mask, check_nonnegative, check_positive, check_tensor
+from ._checks import (check_finite, check_last_dims, check_mask, check_nonnegative, check_positive, check_same_dtype,
+                      check_tensor)
 from .beliefs import DiagGaussian, FactorizedBelief
 from .filtering import FilterResult, filter_loop
 
@@ -143,6 +144,9 @@ def factorized_update(
     obs, mask = _observation("observation", observation, args, mask)
     m = prior.latent_obs_dim
     check_last_dims("observation.mean", obs.mean, (m,))
+    check_same_dtype(("prior.mean", "prior.var_upper", "prior.var_lower", "prior.cov_side", "observation.mean",
+                      "observation.var"), (prior.mean, prior.var_upper, prior.var_lower, prior.cov_side, obs.mean,
+                                           obs.var))
     batch = prior.mean.shape[:-1]
     try:
         full = torch.broadcast_shapes(batch, obs.mean.shape[:-1])
@@ -245,7 +249,11 @@ def factorized_predict(
     for name, blk in (("A11", A11), ("A12", A12), ("A21", A21), ("A22", A22)):
         check_last_dims(name, blk, (m, m))
     check_last_dims("trans_var", trans_var, (2 * m,))
+    check_same_dtype(("prior.mean", "prior.var_upper", "prior.var_lower", "prior.cov_side", "A11", "A12", "A21",
+                      "A22", "trans_var"), (prior.mean, prior.var_upper, prior.var_lower, prior.cov_side, A11, A12,
+                                            A21, A22, trans_var))
     if validate:
+        prior.validate("prior")
         check_nonnegative("trans_var", trans_var)
     A = torch.cat([torch.cat(torch.broadcast_tensors(A11, A12), dim=-1),
                    torch.cat(torch.broadcast_tensors(A21, A22), dim=-1)], dim=-2)
@@ -326,6 +334,10 @@ def _check_filter_args(prior: FactorizedBelief, A: Tensor, trans_var: Tensor, ob
     T = observation.mean.shape[-2]
     if T == 0:
         raise ValueError("observation: need at least one time step, got T = 0")
+    check_same_dtype(("prior.mean", "prior.var_upper", "prior.var_lower", "prior.cov_side", "A", "trans_var",
+                      "observation.mean", "observation.var"), (prior.mean, prior.var_upper, prior.var_lower,
+                                                               prior.cov_side, A, trans_var, observation.mean,
+                                                               observation.var))
     if mask is not None:
         mask = check_mask("mask", mask, tuple(observation.mean.shape[:-1]))
     if validate:

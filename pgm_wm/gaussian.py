@@ -268,6 +268,10 @@ def log_density(x: Tensor, mean: Tensor, cov: Tensor) -> Tensor:
     check_last_dims("mean", mean, (n,))
     check_last_dims("cov", cov, (n, n))
     check_same_batch(("x", "mean", "cov"), (x, mean, cov), (1, 1, 2))
+    check_same_dtype(("x", "mean", "cov"), (x, mean, cov))
+    check_finite("x", x.detach())
+    check_finite("mean", mean.detach())
+    check_finite("cov", cov.detach())
     chol, info = torch.linalg.cholesky_ex(_sym(cov))
     if bool((info != 0).any()):
         raise ValueError("cov: matrix is not positive definite")
@@ -338,6 +342,7 @@ def joint_linear_gaussian(
     Shapes: ``H: (..., m, n)``, ``R: (..., m, m)``, ``offset: (..., m)``.
     """
     n = prior.dim
+    check_last_dims("prior.cov", prior.cov, (n, n))
     check_last_dims("H", H, (None, n))
     m = H.shape[-2]
     check_last_dims("R", R, (m, m))

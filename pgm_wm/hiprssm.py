@@ -268,7 +268,7 @@ class HiPRSSM(nn.Module):
         given as ``task = DiagGaussian(mean, var)``) once and enters every predict step."""
         from .acrkn import check_sequences
 
-        mask = check_sequences(obs, actions, mask)
+        mask = check_sequences(obs, actions, mask, model=self)
         belief = self._task(obs, context, context_mask, task)
         w = self.acrkn.rkn.encode(obs, mask)
         out = self.acrkn.rkn.filter(w, mask=mask, causes=self.causes(actions, belief, obs.shape[1]))

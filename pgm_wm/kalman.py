@@ -94,6 +94,7 @@ def kf_predict(
     if not isinstance(prior, Gaussian):
         raise ValueError(f"prior: expected a Gaussian, got {type(prior).__name__}")
     n = prior.dim
+    check_last_dims("prior.cov", prior.cov, (n, n))
     check_last_dims("F", F, (n, n))
     check_last_dims("Q", Q, (n, n))
     if (B is None) != (u is None):
@@ -185,6 +186,7 @@ def _check_filter_inputs(
     T, m = y.shape[-2], y.shape[-1]
     if T < 1:
         raise ValueError(f"y: expected at least one time step, got shape {tuple(y.shape)}")
+    check_last_dims("init.cov", init.cov, (n, n))
     check_last_dims("F", F, (n, n))
     check_last_dims("H", H, (m, n))
     check_last_dims("Q", Q, (n, n))

@@ -29,7 +29,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from ._checks import as_tensor, check_tensor
+from ._checks import as_tensor, check_finite, check_positive, check_same_dtype, check_tensor
 
 __all__ = [
     "rmse",
@@ -68,6 +68,7 @@ def _reduce(values: Tensor, weights: Tensor, dim: Dims) -> Tensor:
 def _check_pair(pred: Tensor, target: Tensor, pred_name: str = "pred") -> None:
     check_tensor(pred_name, pred)
     check_tensor("target", target)
+    check_same_dtype((pred_name, "target"), (pred, target))
     if pred.shape != target.shape:
         raise ValueError(f"target: shape {tuple(target.shape)} differs from {pred_name}'s {tuple(pred.shape)}")
 
@@ -83,7 +84,9 @@ def rmse(pred: Tensor, target: Tensor, mask: Tensor | None = None, dim: Dims = N
 def gaussian_nll(mean: Tensor, var: Tensor, target: Tensor, mask: Tensor | None = None, dim: Dims = None) -> Tensor:
     r"""Per-dimension average Gaussian negative log-likelihood, Eq. (metric-nll), with
     :math:`\tfrac12\log 2\pi` included. ``var`` must be positive. Same masks/dims as :func:`rmse`."""
-    return _reduce(_nll_terms(mean, var, target), _weights("mask", mask, mean), dim)
+    terms, w = _nll_terms(mean, var, target), _weights("mask", mask, mean)
+    check_finite("target", target.detach()[w.detach() > 0])
+    return _reduce(terms, w, dim)
 
 
 def _nll_terms(mean: Tensor, var: Tensor, target: Tensor) -> Tensor:
@@ -92,8 +95,9 @@ def _nll_terms(mean: Tensor, var: Tensor, target: Tensor) -> Tensor:
     check_tensor("var", var)
     if var.shape != mean.shape:
         raise ValueError(f"var: shape {tuple(var.shape)} differs from mean's {tuple(mean.shape)}")
-    if not bool((var > 0).all()):
-        raise ValueError("var: variances must be strictly positive")
+    check_same_dtype(("mean", "var"), (mean, var))
+    check_positive("var", var.detach())
+    check_finite("mean", mean.detach())
     return 0.5 * (math.log(2 * math.pi) + var.log() + (target - mean) ** 2 / var)
 
 

@@ -386,8 +386,8 @@ class _Prepared:
 
 
 def _prepare(obs: Tensor, actions: Tensor, mask: Tensor | None, multiple: int,
-             obs_dim: int, action_dim: int) -> _Prepared:
-    mask = check_sequences(obs, actions, mask, obs_dim, action_dim)
+             obs_dim: int, action_dim: int, model: object | None = None) -> _Prepared:
+    mask = check_sequences(obs, actions, mask, obs_dim, action_dim, model=model)
     B, T = obs.shape[:2]
     observed = torch.ones(B, T, dtype=torch.bool, device=obs.device) if mask is None else mask
     obs_in = zero_missing(obs, observed)
@@ -557,7 +557,7 @@ class MTS3(nn.Module):
 
     def run(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> MTS3Output:
         """Filter ``obs: (B, T, do)`` with ``actions: (B, T, da)``, ``mask: (B, T)`` (True = observed)."""
-        p = _prepare(obs, actions, mask, self.windows[-1] if self.windows else 1, self.obs_dim, self.action_dim)
+        p = _prepare(obs, actions, mask, self.windows[-1] if self.windows else 1, self.obs_dim, self.action_dim, self)
         task_priors, task_posts, alphas = self.run_task_levels(p) if self.windows else ([], [], [])
         causes = self.causes(p.actions, task_priors[0] if task_priors else None)
         window = self.windows[0] if self.windows else p.obs.shape[1]

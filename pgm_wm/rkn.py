@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ._checks import check_finite, check_last_dims, check_mask, check_tensor
+from ._checks import check_finite, check_input_dtype, check_last_dims, check_mask, check_same_dtype, check_tensor, module_dtype
 from .aggregation import zero_padding
 from .beliefs import DiagGaussian, FactorizedBelief
 from .factorized import (
@@ -485,6 +485,10 @@ class RKN(nn.Module):
         check_tensor("obs", obs, 3)
         if obs.shape[1] == 0:
             raise ValueError("obs: need at least one time step, got T = 0")
+        if obs.ndim != 3:
+            raise ValueError(f"obs: expected shape (B, T, d) (images flattened to H*W), got {tuple(obs.shape)}")
+        check_same_dtype(("obs",), (obs,))
+        check_input_dtype("obs", obs, module_dtype(self))
         if mask is not None:
             mask = check_mask("mask", mask, tuple(obs.shape[:2]))
         obs = zero_missing(obs, mask)
