@@ -22,7 +22,7 @@ from pgm_wm.aggregation import bayesian_aggregation, set_update  # noqa: E402
 from pgm_wm.beliefs import DiagGaussian, FactorizedBelief  # noqa: E402
 from pgm_wm.factorized import factorized_filter, factorized_predict, factorized_update  # noqa: E402
 from pgm_wm.gaussian import Gaussian, condition, log_density  # noqa: E402
-from pgm_wm.kalman import kalman_filter, kf_predict, kf_update, rts_smoother  # noqa: E402
+from pgm_wm.kalman import kalman_filter, kf_predict, kf_update  # noqa: E402
 from pgm_wm.metrics import gaussian_nll, rmse  # noqa: E402
 
 KINDS = ["nan", "inf", "float16", "bfloat16", "mixed", "int", "shape"]
