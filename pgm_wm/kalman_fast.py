@@ -330,36 +330,72 @@ def _masked_loop(F: Tensor, H: Tensor, Q: Tensor, R: Tensor, P0: Tensor, mean0: 
     tmp_j = torch.empty(n + m, n, n, N, dtype=dt, device=dev)
     tmp_m = torch.empty(m, n, N, dtype=dt, device=dev)
     gain = torch.empty(n, N, dtype=dt, device=dev)
-    for t in range(T):
-        torch.addmm(lin_bias, lin, Pv[t], out=lin_out)
-        d_t = dets[t]
-        if m == 2:
-            torch.mul(S_a, S_d, out=d_t)
-            d_t.addcmul_(S_b, S_b, value=-1)
-        else:
-            d_t.copy_(S_a)
-        torch.div(w_s[t], d_t, out=scale[0])
-        Sinv_t = torch.mul(adj, scale, out=Sinvs[t])                                  # w S⁻¹
-        torch.mul(Sinv_t.view(m, m, 1, N), HP, out=tmp_k)
-        torch.sum(tmp_k, 1, out=Kt)                                                   # Kᵀ = w S⁻¹ H Σ
-        torch.addmm(eye_vec, to_At, Kt_v, alpha=-1, out=At_v)                         # Aᵀ = I − Hᵀ Kᵀ
-        torch.mm(to_RKt, Kt_v, out=RKt_v)                                             # R Kᵀ
-        torch.mul(P4[t].unsqueeze(2), At_b, out=tmp_p)
-        torch.sum(tmp_p, 1, out=PAt)                                                  # Σ Aᵀ
-        torch.mul(MDt_b, Mt_b, out=tmp_j)
-        torch.sum(tmp_j, 0, out=Pp4[t])                                               # A Σ Aᵀ + K R Kᵀ
-        e_t = torch.addmm(y_s[t], H, Ms[t], alpha=-1, out=es[t])                      # y − H μ⁻
-        torch.mul(Kt, e_t.unsqueeze(1), out=tmp_m)
-        torch.sum(tmp_m, 0, out=gain)
-        torch.add(Ms[t], gain, out=Mps[t])                                            # μ⁺ = μ⁻ + K e
-        torch.addmm(Qv, to_FPF, Ppv[t], out=Pv[t + 1])                                # F Σ⁺ Fᵀ + Q
-        if u_s is None:
-            torch.mm(F, Mps[t], out=Ms[t + 1])
-        else:
-            torch.addmm(u_s[t], F, Mps[t], out=Ms[t + 1])
+    steps = _scripted_steps()
+    u_list = list(u_s) if u_s is not None else []
+    steps(lin_bias, lin, list(Pv), list(P4), list(dets), lin_out, list(w_s), scale, adj, list(Sinvs), tmp_k, HP, Kt,
+          eye_vec, to_At, Kt_v, At_v, to_RKt, RKt_v, tmp_p, At_b, PAt, MDt_b, Mt_b, tmp_j, list(Pp4), list(y_s), H,
+          list(Ms), list(es), tmp_m, gain, list(Mps), Qv, to_FPF, list(Ppv), F, u_list, nm, m, N, T)
     bufs["ld"] = det.log_()
     bufs["_done"] = torch.ones(())
     return bufs
+
+
+def _masked_steps(lin_bias: Tensor, lin: Tensor, Pv: list[Tensor], P4: list[Tensor], dets: list[Tensor],
+                  lin_out: Tensor, w_s: list[Tensor], scale: Tensor, adj: Tensor, Sinvs: list[Tensor], tmp_k: Tensor,
+                  HP: Tensor, Kt: Tensor, eye_vec: Tensor, to_At: Tensor, Kt_v: Tensor, At_v: Tensor, to_RKt: Tensor,
+                  RKt_v: Tensor, tmp_p: Tensor, At_b: Tensor, PAt: Tensor, MDt_b: Tensor, Mt_b: Tensor, tmp_j: Tensor,
+                  Pp4: list[Tensor], y_s: list[Tensor], H: Tensor, Ms: list[Tensor], es: list[Tensor], tmp_m: Tensor,
+                  gain: Tensor, Mps: list[Tensor], Qv: Tensor, to_FPF: Tensor, Ppv: list[Tensor], F: Tensor,
+                  u_s: list[Tensor], nm: int, m: int, N: int, T: int) -> None:
+    """The loop of :func:`_masked_loop` (see there; every argument a constant, a scratch buffer or
+    the list of per-step views of an output). Run compiled by TorchScript (:func:`_scripted_steps`),
+    which removes most of the interpreter's cost per tensor operation; plain Python otherwise."""
+    mm_ = m * m
+    S_a = lin_out[nm]
+    S_b = lin_out[nm + 1]
+    S_d = lin_out[nm + mm_ - 1]
+    scale0 = scale[0]
+    for t in range(T):
+        torch.addmm(lin_bias, lin, Pv[t], out=lin_out)                                # HΣ, S, adj S
+        d_t = dets[t]
+        if m == 2:
+            torch.mul(S_a, S_d, out=d_t)
+            d_t.addcmul_(S_b, S_b, value=-1.0)
+        else:
+            d_t.copy_(S_a)
+        torch.div(w_s[t], d_t, out=scale0)
+        Sinv_t = torch.mul(adj, scale, out=Sinvs[t])                                   # w S⁻¹
+        torch.mul(Sinv_t.view([m, m, 1, N]), HP, out=tmp_k)
+        torch.sum(tmp_k, [1], out=Kt)                                                  # Kᵀ = w S⁻¹ H Σ
+        torch.addmm(eye_vec, to_At, Kt_v, alpha=-1.0, out=At_v)                        # Aᵀ = I − Hᵀ Kᵀ
+        torch.mm(to_RKt, Kt_v, out=RKt_v)                                              # R Kᵀ
+        torch.mul(P4[t].unsqueeze(2), At_b, out=tmp_p)
+        torch.sum(tmp_p, [1], out=PAt)                                                 # Σ Aᵀ
+        torch.mul(MDt_b, Mt_b, out=tmp_j)
+        torch.sum(tmp_j, [0], out=Pp4[t])                                              # A Σ Aᵀ + K R Kᵀ
+        e_t = torch.addmm(y_s[t], H, Ms[t], alpha=-1.0, out=es[t])                     # y − H μ⁻
+        torch.mul(Kt, e_t.unsqueeze(1), out=tmp_m)
+        torch.sum(tmp_m, [0], out=gain)
+        torch.add(Ms[t], gain, out=Mps[t])                                             # μ⁺ = μ⁻ + K e
+        torch.addmm(Qv, to_FPF, Ppv[t], out=Pv[t + 1])                                 # F Σ⁺ Fᵀ + Q
+        if len(u_s) == 0:
+            torch.mm(F, Mps[t], out=Ms[t + 1])
+        else:
+            torch.addmm(u_s[t], F, Mps[t], out=Ms[t + 1])
+
+
+_SCRIPTED: list = []
+
+
+def _scripted_steps():
+    """:func:`_masked_steps` compiled by TorchScript once per process (the plain function if
+    compiling fails, e.g. where TorchScript is unavailable)."""
+    if not _SCRIPTED:
+        try:
+            _SCRIPTED.append(torch.jit.script(_masked_steps))
+        except Exception:                                   # noqa: BLE001 - any failure: run uncompiled
+            _SCRIPTED.append(_masked_steps)
+    return _SCRIPTED[0]
 
 
 def _mm(A: Tensor, B: Tensor) -> Tensor:
