@@ -330,7 +330,7 @@ def _masked_loop(F: Tensor, H: Tensor, Q: Tensor, R: Tensor, P0: Tensor, mean0: 
     tmp_j = torch.empty(n + m, n, n, N, dtype=dt, device=dev)
     tmp_m = torch.empty(m, n, N, dtype=dt, device=dev)
     gain = torch.empty(n, N, dtype=dt, device=dev)
-    steps = _scripted_steps()
+    steps = _scripted(_masked_steps)
     u_list = list(u_s) if u_s is not None else []
     steps(lin_bias, lin, list(Pv), list(P4), list(dets), lin_out, list(w_s), scale, adj, list(Sinvs), tmp_k, HP, Kt,
           eye_vec, to_At, Kt_v, At_v, to_RKt, RKt_v, tmp_p, At_b, PAt, MDt_b, Mt_b, tmp_j, list(Pp4), list(y_s), H,
@@ -348,7 +348,7 @@ def _masked_steps(lin_bias: Tensor, lin: Tensor, Pv: list[Tensor], P4: list[Tens
                   gain: Tensor, Mps: list[Tensor], Qv: Tensor, to_FPF: Tensor, Ppv: list[Tensor], F: Tensor,
                   u_s: list[Tensor], nm: int, m: int, N: int, T: int) -> None:
     """The loop of :func:`_masked_loop` (see there; every argument a constant, a scratch buffer or
-    the list of per-step views of an output). Run compiled by TorchScript (:func:`_scripted_steps`),
+    the list of per-step views of an output). Run compiled by TorchScript (:func:`_scripted`),
     which removes most of the interpreter's cost per tensor operation; plain Python otherwise."""
     mm_ = m * m
     S_a = lin_out[nm]
@@ -384,18 +384,33 @@ def _masked_steps(lin_bias: Tensor, lin: Tensor, Pv: list[Tensor], P4: list[Tens
             torch.addmm(u_s[t], F, Mps[t], out=Ms[t + 1])
 
 
-_SCRIPTED: list = []
+def _rts_steps(Ms: list[Tensor], Cs: list[Tensor], Gs: list[Tensor], Ls: list[Tensor], mfs: list[Tensor],
+               mps: list[Tensor], d: Tensor, gd: Tensor, gC: Tensor, t3: Tensor, T: int) -> None:
+    """The backward loop of :func:`_rts_per_sequence` (Eq. rts) on per-step views, batch last:
+    μˢ_t = μ⁺_t + G_t(μˢ_{t+1} − μ⁻_{t+1}), Σˢ_t = L_t + G_t Σˢ_{t+1} G_tᵀ; compiled like
+    :func:`_masked_steps`."""
+    for t in range(T - 2, -1, -1):
+        g = Gs[t]
+        torch.sub(Ms[t + 1], mps[t], out=d)
+        torch.mul(g, d, out=gd)
+        torch.add(mfs[t], gd.sum(1), out=Ms[t])
+        torch.mul(g.unsqueeze(2), Cs[t + 1].unsqueeze(0), out=t3)
+        torch.sum(t3, [1], out=gC)                                                     # G Σˢ_{t+1}
+        torch.mul(gC.unsqueeze(1), g.unsqueeze(0), out=t3)
+        torch.add(Ls[t], t3.sum(2), out=Cs[t])
 
 
-def _scripted_steps():
-    """:func:`_masked_steps` compiled by TorchScript once per process (the plain function if
-    compiling fails, e.g. where TorchScript is unavailable)."""
-    if not _SCRIPTED:
+_SCRIPTED: dict = {}
+
+
+def _scripted(fn):
+    """``fn`` compiled by TorchScript once per process (``fn`` itself if compiling fails)."""
+    if fn.__name__ not in _SCRIPTED:
         try:
-            _SCRIPTED.append(torch.jit.script(_masked_steps))
+            _SCRIPTED[fn.__name__] = torch.jit.script(fn)
         except Exception:                                   # noqa: BLE001 - any failure: run uncompiled
-            _SCRIPTED.append(_masked_steps)
-    return _SCRIPTED[0]
+            _SCRIPTED[fn.__name__] = fn
+    return _SCRIPTED[fn.__name__]
 
 
 def _mm(A: Tensor, B: Tensor) -> Tensor:
@@ -490,15 +505,7 @@ def _rts_per_sequence(post: Gaussian, nxt: Gaussian, F: Tensor, Q: Tensor) -> Ga
     gd = torch.empty(n, n, N, dtype=F.dtype, device=F.device)
     gC = torch.empty(n, n, N, dtype=F.dtype, device=F.device)
     t3 = torch.empty(n, n, n, N, dtype=F.dtype, device=F.device)
-    for t in range(T - 2, -1, -1):
-        g = Gs_[t]
-        torch.sub(Ms[t + 1], mps[t], out=d)
-        torch.mul(g, d, out=gd)
-        torch.add(mfs[t], gd.sum(1), out=Ms[t])                           # μˢ_t = μ⁺_t + G (μˢ_{t+1} − μ⁻_{t+1})
-        torch.mul(g.unsqueeze(2), Cs[t + 1].unsqueeze(0), out=t3)
-        torch.sum(t3, 1, out=gC)                                             # G Σˢ_{t+1}
-        torch.mul(gC.unsqueeze(1), g.unsqueeze(0), out=t3)
-        torch.add(Ls_[t], t3.sum(2), out=Cs[t])                              # + (I − GF)Σ⁺(I − GF)ᵀ + GQGᵀ
+    _scripted(_rts_steps)(list(Ms), list(Cs), list(Gs_), list(Ls_), list(mfs), list(mps), d, gd, gC, t3, T)
     mean = M.movedim(-1, 0).reshape(*batch, T, n)
     cov = C.movedim(-1, 0).reshape(*batch, T, n, n)
     return Gaussian(mean, _sym(cov))
