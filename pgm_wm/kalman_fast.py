@@ -159,15 +159,19 @@ def _filter_fast(
             elif x.data_ptr() != bufs[name][t].data_ptr():
                 bufs[name][t].copy_(x)
 
+        if params_2d and m <= 2 and not needs_grad:
+            bufs = _masked_loop(F, H, Q, R, flat(init.cov, 2), flat(init.mean, 1), y_tm, off_tm, w_all, T, n, m, N)
         step = _SequenceStep(F, H, Q, R, n, m, N) if params_2d else None
         P, mean = flat(init.cov, 2), flat(init.mean, 1)
         if step is not None:
             P, mean = P.permute(1, 2, 0).contiguous(), mean.T.contiguous()
             y_soa = y_tm.permute(0, 2, 1).contiguous()                             # (T, m, N)
             u_soa = None if off_tm is None else off_tm.permute(0, 2, 1).contiguous()
-        put("P", 0, P, soa=step is not None)
-        put("M", 0, mean, soa=step is not None)
-        for t in range(T):
+        done = bool(bufs.pop("_done", False))
+        if not done:
+            put("P", 0, P, soa=step is not None)
+            put("M", 0, mean, soa=step is not None)
+        for t in range(0 if not done else T, T):
             w = None if w_all is None else w_all[:, t]
             if step is not None:
                 P, mean = step(P, mean, y_soa[t], w, None if u_soa is None else u_soa[t], t, out)
@@ -260,6 +264,155 @@ class _SequenceStep:
         return P_next, mean_next
 
 
+def _masked_loop(F: Tensor, H: Tensor, Q: Tensor, R: Tensor, P0: Tensor, mean0: Tensor, y_tm: Tensor,
+                 off_tm: Tensor | None, w_all: Tensor | None, T: int, n: int, m: int, N: int) -> dict[str, Tensor]:
+    r"""The per-sequence covariance path of :func:`_filter_fast` for unbatched ``F, H, Q, R``,
+    ``m ≤ 2`` and no gradient, written for few tensor operations per step (about 19, each on
+    the whole batch, with views of the preallocated outputs made before the loop):
+
+    * one GEMM with a constant matrix maps :math:`\operatorname{vec}\Sigma^-_t` to
+      :math:`H\Sigma^-_t`, :math:`S_t = H\Sigma^-_tH^\top + R` and the adjugate of :math:`S_t`
+      (Eq. kf-update), so :math:`w_tS_t^{-1} = \operatorname{adj}(S_t)\,w_t/\det S_t`; the
+      log-determinants are one ``log`` over all steps after the loop;
+    * the Joseph form (Eq. kf-joseph) as :math:`M D M^\top` with :math:`M = [A\;K]`,
+      :math:`D = \operatorname{diag}(\Sigma^-_t, R)`, :math:`A = I - KH`, stored transposed so
+      every block is a contiguous slice of one buffer;
+    * the prediction (Eq. kf-predict) one GEMM with :math:`F\otimes F` into the next slot.
+
+    Returns the output buffers of :func:`_filter_fast` (batch last) with ``"_done"`` set."""
+    dt, dev = F.dtype, F.device
+    eye_n = torch.eye(n, dtype=dt, device=dev)
+    nn_, nm, mm_ = n * n, n * m, m * m
+    # rows: vec(H Σ) (m, n), vec(S) (m, m), vec(adj S) (m, m)
+    to_HP = torch.einsum("ka,jb->kjab", H, eye_n).reshape(nm, nn_)             # (HΣ)_{kj} = Σ_a H_ka Σ_aj
+    to_S = torch.einsum("ki,lj->klij", H, H).reshape(mm_, nn_)
+    if m == 2:
+        perm = torch.tensor([[0., 0, 0, 1], [0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0]], dtype=dt, device=dev)
+        to_adj, adj_bias = perm @ to_S, perm @ R.reshape(4)
+    else:
+        to_adj, adj_bias = torch.zeros(1, nn_, dtype=dt, device=dev), torch.ones(1, dtype=dt, device=dev)
+    lin = torch.cat([to_HP, to_S, to_adj]).contiguous()
+    lin_bias = torch.cat([torch.zeros(nm, dtype=dt, device=dev), R.reshape(mm_), adj_bias])[:, None].contiguous()
+    # vec(Kᵀ) (m, n) -> vec(Aᵀ) = vec(I − Hᵀ Kᵀ) and vec(R Kᵀ)
+    to_At = torch.einsum("ak,jl->ajkl", H.T, eye_n).reshape(nn_, nm)            # (HᵀKᵀ)_{aj} = Σ_k H_ka Kᵀ_kj
+    to_RKt = torch.einsum("lk,ij->likj", R, eye_n).reshape(nm, nm)               # (RKᵀ)_{lj} = Σ_k R_lk Kᵀ_kj
+    to_FPF = torch.einsum("ki,lj->klij", F, F).reshape(nn_, nn_)
+    eye_vec, Qv = eye_n.reshape(nn_, 1), Q.reshape(nn_, 1)
+
+    bufs = dict(P=torch.empty(T + 1, n, n, N, dtype=dt, device=dev), Pp=torch.empty(T, n, n, N, dtype=dt, device=dev),
+                M=torch.empty(T + 1, n, N, dtype=dt, device=dev), Mp=torch.empty(T, n, N, dtype=dt, device=dev),
+                Sinv=torch.empty(T, m, m, N, dtype=dt, device=dev), e=torch.empty(T, m, N, dtype=dt, device=dev))
+    det = torch.empty(T, N, dtype=dt, device=dev)
+    bufs["P"][0].copy_(P0.permute(1, 2, 0))
+    bufs["M"][0].copy_(mean0.T)
+    Pv = bufs["P"].view(T + 1, nn_, N).unbind(0)
+    P4 = bufs["P"].unbind(0)
+    Ppv = bufs["Pp"].view(T, nn_, N).unbind(0)
+    Pp4 = bufs["Pp"].unbind(0)
+    Ms, Mps, es = bufs["M"].unbind(0), bufs["Mp"].unbind(0), bufs["e"].unbind(0)
+    Sinvs, dets = bufs["Sinv"].view(T, mm_, N).unbind(0), det.unbind(0)
+    y_s = y_tm.permute(0, 2, 1).contiguous().unbind(0)                             # (m, N) each
+    u_s = None if off_tm is None else off_tm.permute(0, 2, 1).contiguous().unbind(0)
+    w_s = (torch.ones(T, N, dtype=dt, device=dev) if w_all is None else w_all.T.contiguous()).unbind(0)
+    MDt = torch.empty(n + m, n, N, dtype=dt, device=dev)      # [ (AΣ)ᵀ ; (KR)ᵀ ] = [ΣAᵀ ; RKᵀ]
+    Mt = torch.empty(n + m, n, N, dtype=dt, device=dev)       # [ Aᵀ ; Kᵀ ]
+    At_v, Kt = Mt[:n].view(nn_, N), Mt[n:]
+    PAt, RKt_v = MDt[:n], MDt[n:].view(nm, N)
+    Mt_b, MDt_b, At_b = Mt.unsqueeze(1), MDt.unsqueeze(2), Mt[:n].unsqueeze(0)
+    Kt_v = Kt.view(nm, N)
+    lin_out = torch.empty(nm + 2 * mm_, N, dtype=dt, device=dev)
+    HP = lin_out[:nm].view(1, m, n, N)
+    S_a, S_b, S_d = lin_out[nm], lin_out[nm + 1], lin_out[nm + mm_ - 1]
+    adj = lin_out[nm + mm_:]
+    scale = torch.empty(1, N, dtype=dt, device=dev)
+    tmp_k = torch.empty(m, m, n, N, dtype=dt, device=dev)
+    tmp_p = torch.empty(n, n, n, N, dtype=dt, device=dev)
+    tmp_j = torch.empty(n + m, n, n, N, dtype=dt, device=dev)
+    tmp_m = torch.empty(m, n, N, dtype=dt, device=dev)
+    gain = torch.empty(n, N, dtype=dt, device=dev)
+    steps = _scripted(_masked_steps)
+    u_list = list(u_s) if u_s is not None else []
+    steps(lin_bias, lin, list(Pv), list(P4), list(dets), lin_out, list(w_s), scale, adj, list(Sinvs), tmp_k, HP, Kt,
+          eye_vec, to_At, Kt_v, At_v, to_RKt, RKt_v, tmp_p, At_b, PAt, MDt_b, Mt_b, tmp_j, list(Pp4), list(y_s), H,
+          list(Ms), list(es), tmp_m, gain, list(Mps), Qv, to_FPF, list(Ppv), F, u_list, nm, m, N, T)
+    bufs["ld"] = det.log_()
+    bufs["_done"] = torch.ones(())
+    return bufs
+
+
+def _masked_steps(lin_bias: Tensor, lin: Tensor, Pv: list[Tensor], P4: list[Tensor], dets: list[Tensor],
+                  lin_out: Tensor, w_s: list[Tensor], scale: Tensor, adj: Tensor, Sinvs: list[Tensor], tmp_k: Tensor,
+                  HP: Tensor, Kt: Tensor, eye_vec: Tensor, to_At: Tensor, Kt_v: Tensor, At_v: Tensor, to_RKt: Tensor,
+                  RKt_v: Tensor, tmp_p: Tensor, At_b: Tensor, PAt: Tensor, MDt_b: Tensor, Mt_b: Tensor, tmp_j: Tensor,
+                  Pp4: list[Tensor], y_s: list[Tensor], H: Tensor, Ms: list[Tensor], es: list[Tensor], tmp_m: Tensor,
+                  gain: Tensor, Mps: list[Tensor], Qv: Tensor, to_FPF: Tensor, Ppv: list[Tensor], F: Tensor,
+                  u_s: list[Tensor], nm: int, m: int, N: int, T: int) -> None:
+    """The loop of :func:`_masked_loop` (see there; every argument a constant, a scratch buffer or
+    the list of per-step views of an output). Run compiled by TorchScript (:func:`_scripted`),
+    which removes most of the interpreter's cost per tensor operation; plain Python otherwise."""
+    mm_ = m * m
+    S_a = lin_out[nm]
+    S_b = lin_out[nm + 1]
+    S_d = lin_out[nm + mm_ - 1]
+    scale0 = scale[0]
+    for t in range(T):
+        torch.addmm(lin_bias, lin, Pv[t], out=lin_out)                                # HΣ, S, adj S
+        d_t = dets[t]
+        if m == 2:
+            torch.mul(S_a, S_d, out=d_t)
+            d_t.addcmul_(S_b, S_b, value=-1.0)
+        else:
+            d_t.copy_(S_a)
+        torch.div(w_s[t], d_t, out=scale0)
+        Sinv_t = torch.mul(adj, scale, out=Sinvs[t])                                   # w S⁻¹
+        torch.mul(Sinv_t.view([m, m, 1, N]), HP, out=tmp_k)
+        torch.sum(tmp_k, [1], out=Kt)                                                  # Kᵀ = w S⁻¹ H Σ
+        torch.addmm(eye_vec, to_At, Kt_v, alpha=-1.0, out=At_v)                        # Aᵀ = I − Hᵀ Kᵀ
+        torch.mm(to_RKt, Kt_v, out=RKt_v)                                              # R Kᵀ
+        torch.mul(P4[t].unsqueeze(2), At_b, out=tmp_p)
+        torch.sum(tmp_p, [1], out=PAt)                                                 # Σ Aᵀ
+        torch.mul(MDt_b, Mt_b, out=tmp_j)
+        torch.sum(tmp_j, [0], out=Pp4[t])                                              # A Σ Aᵀ + K R Kᵀ
+        e_t = torch.addmm(y_s[t], H, Ms[t], alpha=-1.0, out=es[t])                     # y − H μ⁻
+        torch.mul(Kt, e_t.unsqueeze(1), out=tmp_m)
+        torch.sum(tmp_m, [0], out=gain)
+        torch.add(Ms[t], gain, out=Mps[t])                                             # μ⁺ = μ⁻ + K e
+        torch.addmm(Qv, to_FPF, Ppv[t], out=Pv[t + 1])                                 # F Σ⁺ Fᵀ + Q
+        if len(u_s) == 0:
+            torch.mm(F, Mps[t], out=Ms[t + 1])
+        else:
+            torch.addmm(u_s[t], F, Mps[t], out=Ms[t + 1])
+
+
+def _rts_steps(Ms: list[Tensor], Cs: list[Tensor], Gs: list[Tensor], Ls: list[Tensor], mfs: list[Tensor],
+               mps: list[Tensor], d: Tensor, gd: Tensor, gC: Tensor, t3: Tensor, T: int) -> None:
+    """The backward loop of :func:`_rts_per_sequence` (Eq. rts) on per-step views, batch last:
+    μˢ_t = μ⁺_t + G_t(μˢ_{t+1} − μ⁻_{t+1}), Σˢ_t = L_t + G_t Σˢ_{t+1} G_tᵀ; compiled like
+    :func:`_masked_steps`."""
+    for t in range(T - 2, -1, -1):
+        g = Gs[t]
+        torch.sub(Ms[t + 1], mps[t], out=d)
+        torch.mul(g, d, out=gd)
+        torch.add(mfs[t], gd.sum(1), out=Ms[t])
+        torch.mul(g.unsqueeze(2), Cs[t + 1].unsqueeze(0), out=t3)
+        torch.sum(t3, [1], out=gC)                                                     # G Σˢ_{t+1}
+        torch.mul(gC.unsqueeze(1), g.unsqueeze(0), out=t3)
+        torch.add(Ls[t], t3.sum(2), out=Cs[t])
+
+
+_SCRIPTED: dict = {}
+
+
+def _scripted(fn):
+    """``fn`` compiled by TorchScript once per process (``fn`` itself if compiling fails)."""
+    if fn.__name__ not in _SCRIPTED:
+        try:
+            _SCRIPTED[fn.__name__] = torch.jit.script(fn)
+        except Exception:                                   # noqa: BLE001 - any failure: run uncompiled
+            _SCRIPTED[fn.__name__] = fn
+    return _SCRIPTED[fn.__name__]
+
+
 def _mm(A: Tensor, B: Tensor) -> Tensor:
     """``A @ B`` for batch-last matrices ``A: (i, k, N)``, ``B: (k, j, N)`` -> ``(i, j, N)``."""
     return (A.unsqueeze(2) * B.unsqueeze(0)).sum(1)
@@ -346,11 +499,13 @@ def _rts_per_sequence(post: Gaussian, nxt: Gaussian, F: Tensor, Q: Tensor) -> Ga
     M = torch.empty(T, n, N, dtype=F.dtype, device=F.device)
     C = torch.empty(T, n, n, N, dtype=F.dtype, device=F.device)
     M[T - 1], C[T - 1] = m_f[T - 1], c_f[T - 1]
-    for t in range(T - 2, -1, -1):
-        g = G[t]
-        d = M[t + 1] - m_p[t]
-        torch.add(m_f[t], (g * d.unsqueeze(0)).sum(1), out=M[t])
-        torch.add(Lc[t], _mm_t(_mm(g, C[t + 1]), g), out=C[t])
+    # views and scratch made once: the loop is 9 tensor operations per step, no allocation
+    Ms, Cs, Gs_, Ls_, mfs, mps = M.unbind(0), C.unbind(0), G.unbind(0), Lc.unbind(0), m_f.unbind(0), m_p.unbind(0)
+    d = torch.empty(n, N, dtype=F.dtype, device=F.device)
+    gd = torch.empty(n, n, N, dtype=F.dtype, device=F.device)
+    gC = torch.empty(n, n, N, dtype=F.dtype, device=F.device)
+    t3 = torch.empty(n, n, n, N, dtype=F.dtype, device=F.device)
+    _scripted(_rts_steps)(list(Ms), list(Cs), list(Gs_), list(Ls_), list(mfs), list(mps), d, gd, gC, t3, T)
     mean = M.movedim(-1, 0).reshape(*batch, T, n)
     cov = C.movedim(-1, 0).reshape(*batch, T, n, n)
     return Gaussian(mean, _sym(cov))
