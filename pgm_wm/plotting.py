@@ -6,6 +6,7 @@ Chapters add their own helpers at the end of this file (one function per plot ki
 
 from __future__ import annotations
 
+import math
 from typing import Any, Sequence
 
 import numpy as np
@@ -46,15 +47,25 @@ def plot_belief(
 
 
 def markdown_table(
-    rows: Sequence[Sequence[Any]], header: Sequence[str], floatfmt: str = ".4g"
+    rows: Sequence[Sequence[Any]],
+    header: Sequence[str],
+    floatfmt: str = ".4g",
+    diverged_above: float | None = None,
 ) -> str:
     """Format rows as a Markdown table (display with ``IPython.display.Markdown``).
 
     Floats are formatted with ``floatfmt``; everything else with ``str``. Every row must have
-    as many cells as ``header``.
+    as many cells as ``header``. With ``diverged_above`` (a positive threshold), a float that
+    is not finite or whose magnitude exceeds it is written as "diverged" instead of a number
+    such as ``inf`` or ``2.05e+11`` (for error metrics of runs that blew up).
     """
+    if diverged_above is not None and not (diverged_above > 0 and math.isfinite(diverged_above)):
+        raise ValueError(f"diverged_above: expected a positive finite threshold, got {diverged_above!r}")
+
     def fmt(v: Any) -> str:
         if isinstance(v, (float, np.floating)):
+            if diverged_above is not None and not (abs(float(v)) <= diverged_above):
+                return "diverged"
             return format(float(v), floatfmt)
         if hasattr(v, "item") and getattr(v, "ndim", 1) == 0:
             return fmt(v.item())

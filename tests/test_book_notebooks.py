@@ -67,3 +67,47 @@ def test_clear_notebooks_script_cleans_a_dirty_copy(tmp_path):
                             "--check", str(dirty)], capture_output=True, text=True)
     assert check.returncode == 1
     assert json.loads(dirty.read_text(encoding="utf-8"))["cells"][0] == nb["cells"][0]
+
+
+CHAPTERS_WITH_CODE_LINE = ["01_kalman_filter", "02_bayesian_aggregation", "03_rkn", "04_acrkn", "06_mts3"]
+
+
+@pytest.mark.parametrize("name", CHAPTERS_WITH_CODE_LINE)
+def test_chapter_links_its_modules_in_the_api_reference(name):
+    """Each chapter's opening cell names its modules with {py:mod} roles (links into the API
+    page, book/api.rst) and every named module exists; the chapter's own code cells import
+    from at least one of them."""
+    import importlib
+    import re
+
+    nb = json.loads((ROOT / "notebooks" / f"{name}.ipynb").read_text(encoding="utf-8"))
+    opening = "".join(nb["cells"][0]["source"])
+    assert "**Code for this chapter.**" in opening
+    assert "{doc}`API reference <../book/api>`" in opening
+    modules = re.findall(r"\{py:mod\}`(pgm_wm[\w.]*)`", opening)
+    assert modules, "no module linked"
+    for module in modules:
+        importlib.import_module(module)
+    code = "".join("".join(c["source"]) for c in nb["cells"] if c["cell_type"] == "code")
+    assert any(f"from {m} import" in code for m in modules)
+
+
+def exercise_counts(nb: dict) -> tuple[int, int]:
+    """(number of exercises, number of solutions/hints/open-problem labels) in a notebook's
+    exercise section (from "## Exercises" to the next "## What..." heading)."""
+    import re
+
+    text = "\n".join("".join(c["source"]) for c in nb["cells"])
+    text = text[text.index("## Exercises"):]
+    end = re.search(r"^## What", text, re.M)
+    text = text[: end.start()] if end else text
+    numbers = set(re.findall(r"^(?:\*\*(\d+)\.|(\d+)\. \*\*)", text, re.M))
+    return len(numbers), len(re.findall(r"Solution|Hint for|Open problem", text))
+
+
+@pytest.mark.parametrize("name", CHAPTERS_WITH_CODE_LINE)
+def test_every_exercise_has_a_solution_or_is_marked_open(name):
+    nb = json.loads((ROOT / "notebooks" / f"{name}.ipynb").read_text(encoding="utf-8"))
+    n_exercises, n_answers = exercise_counts(nb)
+    assert n_exercises >= 3, name
+    assert n_answers >= n_exercises, f"{name}: {n_exercises} exercises, {n_answers} solutions"

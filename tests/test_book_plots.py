@@ -87,3 +87,18 @@ def test_gain_picture_shows_the_precision_weighted_average():
 def test_diagrams_reject_bad_arguments(call, argument):
     with pytest.raises(ValueError, match=f"^{argument}"):
         call()
+
+
+def test_markdown_table_marks_diverged_values():
+    from pgm_wm.plotting import markdown_table
+
+    rows = [["a", 0.5, float("inf")], ["b", 2.05054515609e11, float("nan")], ["c", -3.0, 12.0]]
+    table = markdown_table(rows, ["name", "x", "y"], ".3f", diverged_above=1e3)
+    lines = table.splitlines()
+    assert lines[2] == "| a | 0.500 | diverged |"
+    assert lines[3] == "| b | diverged | diverged |"
+    assert lines[4] == "| c | -3.000 | 12.000 |"
+    # without the threshold the numbers are printed as they are
+    assert "inf" in markdown_table(rows[:1], ["name", "x", "y"], ".3f")
+    with pytest.raises(ValueError, match="^diverged_above"):
+        markdown_table(rows, ["name", "x", "y"], diverged_above=0.0)
