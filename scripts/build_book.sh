@@ -15,6 +15,9 @@ python scripts/vendor_assets.py
 # when PGM_WM_PROGRESS=0 (interactive runs in JupyterLab keep their bars). The executing
 # kernels inherit this environment.
 export PGM_WM_PROGRESS=0
+# no live ipywidgets in batch execution (nbclient can wait forever on widget comms); the page
+# shows chapter 1's static grid instead
+export PGM_WM_WIDGETS=0
 
 # --all: rebuild every page from scratch, so every notebook is executed on every build
 #        (execute_notebooks: force only executes the pages Sphinx re-reads).

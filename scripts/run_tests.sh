@@ -21,6 +21,10 @@ n_tests=$(find tests -name 'test_*.py' | wc -l)
 n_notebooks=$(find notebooks -maxdepth 1 -name '*.ipynb' | wc -l)
 echo "[run_tests] $n_tests test files in tests/, $n_notebooks notebooks in notebooks/"
 
+# Batch runs: no progress bars, and no live ipywidgets (a cell that opens widget comms can make
+# nbclient wait forever; chapter 1 shows a static grid instead, see its slider cell).
+export PGM_WM_PROGRESS=0 PGM_WM_WIDGETS=0
+
 start=$(date +%s)
 status=0
 python -m pytest tests notebooks --nbmake --nbmake-timeout=600 "$@" || status=$?
