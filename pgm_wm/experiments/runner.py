@@ -271,6 +271,8 @@ def run_experiment(exp: Experiment, seeds: Sequence[int], budget_s: float, out_p
             raise ValueError(f"models: unknown model {n!r} (known: {', '.join(exp.models)})")
     tasks = [(n, s, budget_s) for n in names for s in (seeds if exp.models[n].trained else seeds[:1])]
     t0 = time.perf_counter()
+    # commit, date and machine are recorded when the run starts; the wall time when it ends
+    started = provenance(budget_cpu_s=budget_s, seeds=list(seeds), jobs=jobs)
     if jobs > 1:
         import multiprocessing as mp
 
@@ -306,8 +308,7 @@ def run_experiment(exp: Experiment, seeds: Sequence[int], budget_s: float, out_p
         "horizons": list(exp.protocol.horizons),
         "protocol": {k: getattr(exp.protocol, k) for k in exp.protocol.__dataclass_fields__},
         "notes": dict(exp.notes),
-        "provenance": provenance(budget_cpu_s=budget_s, seeds=list(seeds), jobs=jobs,
-                                 wall_s=round(time.perf_counter() - t0, 1)),
+        "provenance": {**started, "wall_s": round(time.perf_counter() - t0, 1)},
         "models": model_entries,
     }
     if out_path is not None:
