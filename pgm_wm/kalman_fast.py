@@ -322,7 +322,6 @@ def _masked_loop(F: Tensor, H: Tensor, Q: Tensor, R: Tensor, P0: Tensor, mean0: 
     Kt_v = Kt.view(nm, N)
     lin_out = torch.empty(nm + 2 * mm_, N, dtype=dt, device=dev)
     HP = lin_out[:nm].view(1, m, n, N)
-    S_a, S_b, S_d = lin_out[nm], lin_out[nm + 1], lin_out[nm + mm_ - 1]
     adj = lin_out[nm + mm_:]
     scale = torch.empty(1, N, dtype=dt, device=dev)
     tmp_k = torch.empty(m, m, n, N, dtype=dt, device=dev)

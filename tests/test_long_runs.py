@@ -21,19 +21,9 @@ DO, DA = 2, 2
 
 def _build(name: str) -> torch.nn.Module:
     torch.manual_seed(0)
-    small = dict(latent_obs_dim=3, hidden=8, num_basis=3, bandwidth=1)
     return {
         "rkn": lambda: builders.build_rkn((8, 8), out_dim=DO, latent_obs_dim=3, num_basis=3, bandwidth=1,
                                           decoder_hidden=(8,)),
-        "acrkn": lambda: builders.build_acrkn(DO, DA, **small),
-        "acrkn_bounded": lambda: builders.build_acrkn(DO, DA, bounded=True, **small),
-        "hiprssm": lambda: builders.build_hiprssm(DO, DA, latent_obs_dim=3, task_dim=2, hidden=8, num_basis=2,
-                                                  bandwidth=1),
-        "mts3": lambda: builders.build_mts3(DO, DA, 3, window=10, hidden=(8,)),
-        "mts3_2_levels": lambda: builders.build_hierarchical_mts3(DO, DA, 3, windows=(10, 100), hidden=(8,)),
-        "lstm": lambda: builders.build_baseline("lstm", DO, DA, hidden=8, rnn_hidden=8),
-        "gru": lambda: builders.build_baseline("gru", DO, DA, hidden=8, rnn_hidden=8),
-        "ffnn": lambda: builders.build_baseline("ffnn", DO, DA, hidden=8),
         "transformer": lambda: builders.build_baseline("transformer", DO, DA, hidden=8),
     }[name]()
 
