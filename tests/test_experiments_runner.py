@@ -122,3 +122,28 @@ def test_a_model_with_its_own_training_gets_the_same_budget_seed_and_validation(
     assert calls["seed"] == 4 and calls["budget"] == 0.7 and calls["protocol"] is PROTOCOL
     assert calls["valid"] == pytest.approx(calls["reference"])          # the generic validation windows
     assert info["epochs"] == 3 and info["best_valid"] == calls["valid"]
+
+
+def test_score_dims_score_only_those_dimensions():
+    """A 2-d system whose second dimension is 10x larger: scoring dimension 0 alone equals the
+    squared error of that dimension computed by hand, and differs from the all-dimension score."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(1)
+    o = np.cumsum(rng.normal(size=(40, 30, 2)), axis=1) * np.array([1.0, 10.0])
+    parts = split_sequences(SequenceData.from_arrays(o, rng.normal(size=(40, 30, 1))), (0.6, 0.2, 0.2), seed=0)
+    splits = Splits(parts["train"], parts["valid"], parts["test"])
+    p_all = Protocol(context_len=5, horizon=10, horizons=(1, 10), eval_stride=15)
+    p_one = replace(p_all, score_dims=(0,))
+    model = RepeatLast.fit(splits.normalized("train")[0], splits.train.valid)
+    s_all, _ = score(model, splits, p_all)
+    s_one, nll_one = score(model, splits, p_one)
+    obs = splits.test.obs
+    windows = np.stack([obs[:, :15].numpy(), obs[:, 15:30].numpy()], 1).reshape(-1, 15, 2)   # per sequence
+    by_hand = (windows[:, [5, 14], 0] - windows[:, [4], 0]) ** 2            # repeat-last, dim 0
+    np.testing.assert_allclose(s_one, by_hand.T, rtol=1e-4, atol=1e-6)
+    assert s_all.mean() > 10 * s_one.mean() and np.isfinite(nll_one).all()
+    with pytest.raises(ValueError, match="^score_dims"):
+        Protocol(context_len=5, horizon=10, horizons=(1,), eval_stride=5, score_dims=())
+    with pytest.raises(ValueError, match="^score_dims"):
+        score(model, splits, replace(p_all, score_dims=(2,)))

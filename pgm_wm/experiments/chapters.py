@@ -166,12 +166,13 @@ def ch5_experiment(dataset: str = "hidden_payload_arm", window: int = 25, observ
         "GRU": ModelSpec(lambda s: build_baseline("gru", *_dims(s), **_readout(s))),
     }
     protocol = Protocol(context_len=H + c, horizon=H - c, horizons=(1, 5, 10, H - c), eval_stride=2 * H,
-                        valid_stride=2 * H, batch_size=64, keep_prob=0.5, open_loop_prob=0.5, lr=5e-3)
+                        valid_stride=2 * H, batch_size=64, keep_prob=0.5, open_loop_prob=0.5, lr=5e-3,
+                        score_dims=(0, 1))
     models.update(_reference_models(protocol))
     models.update(_oracle_models(dataset))
     return Experiment(f"ch5_{dataset}", f"Chapter 5, open-loop prediction in the second of two task windows on {dataset}",
                       lambda: _splits(dataset), models, protocol, units="rad", scale=1.0,
-                      notes={"window": H, "observed_in_window": c, "dt_s": 0.02})
+                      notes={"window": H, "observed_in_window": c, "dt_s": 0.02, "scored": "joint angles q1, q2"})
 
 
 def ch6_experiment(dataset: str = "slow_payload_arm", window: int = 25) -> Experiment:

@@ -51,7 +51,10 @@ class Protocol:
     ``open_loop_prob`` hides everything after the context.
 
     ``horizons`` are the steps ``k`` reported (each ``<= horizon``); ``eval_stride`` the step
-    between test windows; ``valid_stride`` between validation windows.
+    between test windows; ``valid_stride`` between validation windows. ``score_dims`` are the
+    observation dimensions that are scored and used for selection on validation (all if
+    ``None``), e.g. the angles only when the observations mix angles and velocities, so that a
+    reported RMSE has one unit; every model still trains on all dimensions.
     """
 
     context_len: int
@@ -66,12 +69,24 @@ class Protocol:
     max_window_drop: float = 0.0
     lr: float = 3e-3
     patience: int | None = None
+    score_dims: tuple[int, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.context_len < 1 or self.horizon < 1:
             raise ValueError("context_len: context_len and horizon must be >= 1")
         if not self.horizons or any(not 1 <= h <= self.horizon for h in self.horizons):
             raise ValueError(f"horizons: every horizon must lie in [1, {self.horizon}], got {self.horizons}")
+        if self.score_dims is not None and (not self.score_dims or any(d < 0 for d in self.score_dims)
+                                            or len(set(self.score_dims)) != len(self.score_dims)):
+            raise ValueError(f"score_dims: need distinct non-negative dimensions, got {self.score_dims}")
+
+    def scored(self, x: Tensor) -> Tensor:
+        """The scored observation dimensions (``score_dims``) of ``x: (..., do)``."""
+        if self.score_dims is None:
+            return x
+        if max(self.score_dims) >= x.shape[-1]:
+            raise ValueError(f"score_dims: {self.score_dims} out of range for {x.shape[-1]} observation dimensions")
+        return x[..., list(self.score_dims)]
 
     @property
     def window(self) -> int:
@@ -160,11 +175,11 @@ def _open_loop(model: nn.Module, obs: Tensor, actions: Tensor, protocol: Protoco
 def _valid_score(model: nn.Module, splits: Splits, protocol: Protocol) -> Callable[[], float]:
     obs, act, val = splits.normalized("valid")
     wo, wa = _windows(obs, act, val, protocol.window, protocol.valid_stride or protocol.horizon)
-    target = wo[:, protocol.context_len:]
+    target = protocol.scored(wo[:, protocol.context_len:])
 
     def valid_fn() -> float:
         mean, _ = _open_loop(model, wo, wa, protocol)
-        err = (mean - target).square().mean()
+        err = (protocol.scored(mean) - target).square().mean()
         return float(err.sqrt()) if bool(torch.isfinite(err)) else math.inf
 
     return valid_fn
@@ -215,12 +230,12 @@ def score_oracle(spec: ModelSpec, splits: Splits, protocol: Protocol) -> np.ndar
     if tuple(target.shape) != tuple(ours.shape) or not torch.allclose(target.to(ours.dtype), ours, atol=1e-4):
         raise ValueError("oracle: its targets differ from the runner's test windows")
     idx = [h - 1 for h in protocol.horizons]
-    err = (mean.to(ours.dtype) - ours)[:, idx]
+    err = protocol.scored(mean.to(ours.dtype) - ours)[:, idx]
     return err.square().mean(-1).T.double().numpy()
 
 
 def score(model: nn.Module, splits: Splits, protocol: Protocol) -> tuple[np.ndarray, np.ndarray]:
-    """Per horizon and test window: squared error (mean over dims, original units) and NLL.
+    """Per horizon and test window: squared error (mean over the scored dims, original units) and NLL.
 
     Returns two ``(len(horizons), n_windows)`` arrays. A diverged prediction (non-finite mean or
     a variance that is not positive and finite) is replaced by the training mean with unit
@@ -233,8 +248,8 @@ def score(model: nn.Module, splits: Splits, protocol: Protocol) -> tuple[np.ndar
     var = torch.where(ok, var, torch.ones_like(var))
     std = splits.train.stats["obs_std"].to(mean.dtype)
     idx = [h - 1 for h in p.horizons]
-    err = ((mean - wo[:, p.context_len:]) * std)[:, idx]                  # (W, H, do), original units
-    v = (var * std.square())[:, idx]
+    err = p.scored((mean - wo[:, p.context_len:]) * std)[:, idx]         # (W, H, scored dims), original units
+    v = p.scored(var * std.square())[:, idx]
     sq = err.square().mean(-1).T                                          # (H, W)
     nll = (0.5 * (torch.log(2 * math.pi * v) + err.square() / v)).mean(-1).T
     return sq.double().numpy(), nll.double().numpy()
