@@ -63,6 +63,7 @@ __all__ = [
     "NormBoundedTransition",
     "difference_scaling",
     "DifferenceReadout",
+    "HybridReadout",
     "AcRKN",
     "InverseDynamicsHead",
     "inverse_dynamics",
@@ -289,6 +290,11 @@ class DifferenceReadout(nn.Module):
         self.register_buffer("shift", shift_t)
         self.register_buffer("scale", scale_t)
 
+    @property
+    def decoder_dim(self) -> int:
+        """How many entries the decoder must emit per step (``obs_dim`` here)."""
+        return self.obs_dim
+
     def step(self, memory: Tensor, delta_mean: Tensor, delta_var: Tensor) -> tuple[Tensor, Tensor]:
         """One step: ``memory, delta_mean, delta_var: (..., do)`` -> prediction ``(mean, var)``.
 
@@ -308,12 +314,15 @@ class DifferenceReadout(nn.Module):
         prev = torch.zeros_like(obs_t) if last_pred is None else last_pred
         return torch.where(mask_t[..., None], obs_t, prev)
 
-    def forward(self, obs: Tensor, mask: Tensor | None, delta_mean: Tensor, delta_var: Tensor) -> tuple[Tensor, Tensor]:
-        """Whole sequence: ``obs, delta_mean, delta_var: (B, T, do)``, ``mask: (B, T)`` -> ``(mean, var)``."""
+    def forward(self, obs: Tensor, mask: Tensor | None, delta_mean: Tensor, delta_var: Tensor,
+                last: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Whole sequence: ``obs, delta_mean, delta_var: (B, T, do)``, ``mask: (B, T)`` -> ``(mean, var)``.
+
+        ``last: (B, do)`` is the prediction of ``obs[:, 0]`` made before this sequence (the memory
+        if that step is masked; default zeros), e.g. carried from the previous window."""
         if not self.predict_differences or mask is None:
             return self.step(obs, delta_mean, delta_var)
         means, vars_ = [], []
-        last = None
         for t in range(obs.shape[1]):
             mem = self.memory(obs[:, t], mask[:, t], last)
             mu, var = self.step(mem, delta_mean[:, t], delta_var[:, t])
@@ -321,6 +330,43 @@ class DifferenceReadout(nn.Module):
             vars_.append(var)
             last = mu
         return torch.stack(means, 1), torch.stack(vars_, 1)
+
+
+class HybridReadout(DifferenceReadout):
+    r"""A gated mix of the difference and the absolute readout, Eq. (acrkn-hybrid):
+
+    .. math::
+        \hat o_{t+1} = g \odot \big(m_t + \mathrm{shift} + \mathrm{scale}\odot\delta_t\big)
+        + (1 - g) \odot a_t, \qquad g = \operatorname{sigmoid}(\gamma),
+
+    where the decoder emits both a normalized difference :math:`\delta_t` and an absolute
+    prediction :math:`a_t` (so its output has ``2 * obs_dim`` entries, :attr:`decoder_dim`) and
+    :math:`\gamma` is one learned logit per observation dimension (initialised at 0, an even
+    mix). Treating the two decoded parts as independent Gaussians, the variance is
+    :math:`g^2\,\mathrm{scale}^2\,\mathrm{var}_\delta + (1-g)^2\,\mathrm{var}_a`.
+    :math:`g \to 1` recovers the difference readout, :math:`g \to 0` the absolute one; in open
+    loop the absolute part ties the running sum :math:`m_t` to what the latent state decodes.
+    """
+
+    def __init__(self, obs_dim: int, shift: Tensor | Sequence[float] | None = None,
+                 scale: Tensor | Sequence[float] | None = None, var_floor: float = 1e-4) -> None:
+        super().__init__(obs_dim, True, shift, scale, var_floor)
+        self.gate_logit = nn.Parameter(torch.zeros(obs_dim))
+
+    @property
+    def decoder_dim(self) -> int:
+        return 2 * self.obs_dim
+
+    def step(self, memory: Tensor, delta_mean: Tensor, delta_var: Tensor) -> tuple[Tensor, Tensor]:
+        """One step: ``memory: (..., do)``, ``delta_mean, delta_var: (..., 2 do)`` (difference
+        part first, absolute part second) -> prediction ``(mean, var)`` each ``(..., do)``."""
+        check_last_dims("delta_mean", delta_mean, (self.decoder_dim,))
+        check_last_dims("delta_var", delta_var, (self.decoder_dim,))
+        do = self.obs_dim
+        diff_mean, diff_var = super().step(memory, delta_mean[..., :do], delta_var[..., :do])
+        abs_mean, abs_var = delta_mean[..., do:], delta_var[..., do:] + self.var_floor
+        g = torch.sigmoid(self.gate_logit.to(delta_mean.dtype))
+        return g * diff_mean + (1 - g) * abs_mean, g * g * diff_var + (1 - g) * (1 - g) * abs_var
 
 
 def check_sequences(obs: Tensor, actions: Tensor | None, mask: Tensor | None,
@@ -365,6 +411,8 @@ class AcRKN(nn.Module):
         decoder: ``FactorizedBelief -> (mean, var) (..., do)``, e.g. :class:`pgm_wm.rkn.BeliefDecoder`.
         init_var: initial belief variance.
         predict_differences, diff_shift, diff_scale: see :class:`DifferenceReadout`.
+        readout: a readout module instead (e.g. :class:`HybridReadout`); the decoder's
+            ``out_dim`` must then equal its ``decoder_dim``, and the three arguments above are unused.
     """
 
     def __init__(
@@ -377,18 +425,25 @@ class AcRKN(nn.Module):
         predict_differences: bool = True,
         diff_shift: Tensor | Sequence[float] | None = None,
         diff_scale: Tensor | Sequence[float] | None = None,
+        readout: DifferenceReadout | None = None,
     ) -> None:
         super().__init__()
         self.rkn = RKN(encoder, transition, decoder, init_var)
         self.control = control
-        obs_dim = getattr(decoder, "out_dim", None)
-        if obs_dim is None:
+        out_dim = getattr(decoder, "out_dim", None)
+        if out_dim is None:
             raise ValueError("decoder: needs an `out_dim` attribute (the observation size)")
-        self.obs_dim = obs_dim
+        if readout is None:
+            readout = DifferenceReadout(out_dim, predict_differences, diff_shift, diff_scale)
+        elif not isinstance(readout, DifferenceReadout):
+            raise ValueError(f"readout: expected a DifferenceReadout, got {type(readout).__name__}")
+        if readout.decoder_dim != out_dim:
+            raise ValueError(f"decoder: out_dim {out_dim} differs from the readout's decoder_dim {readout.decoder_dim}")
+        self.obs_dim = readout.obs_dim
         self.latent_obs_dim = transition.latent_obs_dim
         if getattr(control, "latent_obs_dim", self.latent_obs_dim) != self.latent_obs_dim:
             raise ValueError("control: latent_obs_dim differs from the transition's")
-        self.readout = DifferenceReadout(obs_dim, predict_differences, diff_shift, diff_scale)
+        self.readout = readout
 
     @property
     def encoder(self) -> nn.Module:

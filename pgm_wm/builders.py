@@ -29,7 +29,8 @@ from typing import Sequence
 
 from torch import Tensor, nn
 
-from .acrkn import AcRKN, LinearControl, LocallyLinearControl, MLPControl, NormBoundedTransition
+from .acrkn import (AcRKN, DifferenceReadout, HybridReadout, LinearControl, LocallyLinearControl, MLPControl,
+                    NormBoundedTransition)
 from .aggregation import BayesianContextEncoder, MaxPoolContextEncoder, MeanPoolContextEncoder
 from .baselines import FFNNBaseline, GRUBaseline, LSTMBaseline, RKNActionsAsObs, TransformerBaseline
 from .encoders import ConvTrunk
@@ -105,10 +106,13 @@ def build_recurrent_filter(cell: str, image_shape: Sequence[int], out_dim: int =
 # ----------------------------------------------------------------------------- Chapter 4
 def build_acrkn(obs_dim: int = 2, action_dim: int = 2, latent_obs_dim: int = 15, control: str = "mlp",
                 bounded: bool = False, hidden: int = 64, num_basis: int = 15, bandwidth: int = 3,
-                diff_shift: Vector = None, diff_scale: Vector = None) -> AcRKN:
+                diff_shift: Vector = None, diff_scale: Vector = None, readout: str = "difference") -> AcRKN:
     """The Chapter 4 ac-RKN: MLP encoder/decoder of width ``hidden``, locally linear transition,
     control model ``"mlp"`` (two hidden layers), ``"linear"`` or ``"locally_linear"``; with
-    ``bounded`` the transition is wrapped in :class:`pgm_wm.acrkn.NormBoundedTransition`."""
+    ``bounded`` the transition is wrapped in :class:`pgm_wm.acrkn.NormBoundedTransition`.
+    ``readout``: ``"difference"`` (Eq. (acrkn-diff)), ``"absolute"`` (the decoder predicts the
+    observation) or ``"hybrid"`` (:class:`pgm_wm.acrkn.HybridReadout`)."""
+    _choice("readout", readout, ("difference", "absolute", "hybrid"))
     m = latent_obs_dim
     makers = {"mlp": lambda: MLPControl(action_dim, m, (hidden, hidden)),
               "linear": lambda: LinearControl(action_dim, m),
@@ -117,8 +121,10 @@ def build_acrkn(obs_dim: int = 2, action_dim: int = 2, latent_obs_dim: int = 15,
     transition: nn.Module = LocallyLinearTransition(m, num_basis, bandwidth)
     if bounded:
         transition = NormBoundedTransition(transition, max_norm=1.0)
+    head = (HybridReadout(obs_dim, diff_shift, diff_scale) if readout == "hybrid" else
+            DifferenceReadout(obs_dim, readout == "difference", diff_shift, diff_scale))
     return AcRKN(ObservationEncoder(obs_dim, m, (hidden,)), transition, ctrl,
-                 BeliefDecoder(m, obs_dim, (hidden,), (hidden,)), diff_shift=diff_shift, diff_scale=diff_scale)
+                 BeliefDecoder(m, head.decoder_dim, (hidden,), (hidden,)), readout=head)
 
 
 def build_baseline(name: str, obs_dim: int = 2, action_dim: int = 2, hidden: int = 64, latent_obs_dim: int = 15,
@@ -144,14 +150,16 @@ def build_baseline(name: str, obs_dim: int = 2, action_dim: int = 2, hidden: int
 # ----------------------------------------------------------------------------- Chapter 5
 def build_hiprssm(obs_dim: int = 4, action_dim: int = 2, latent_obs_dim: int = 8, task_dim: int = 8,
                   hidden: int = 32, num_basis: int = 4, bandwidth: int = 2, task: str = "nonlinear",
-                  encoder: str = "set", diff_shift: Vector = None, diff_scale: Vector = None) -> HiPRSSM:
-    """The Chapter 5 HiP-RSSM: a Chapter 4 ac-RKN (width ``hidden``), a context encoder over
-    interaction features of size ``2 obs_dim + action_dim`` (``"set"``: Bayesian aggregation,
-    ``"recurrent"``: the ordered ablation) and a ``"nonlinear"`` or ``"linear"`` task term."""
+                  encoder: str = "set", diff_shift: Vector = None, diff_scale: Vector = None,
+                  readout: str = "difference") -> HiPRSSM:
+    """The Chapter 5 HiP-RSSM: a Chapter 4 ac-RKN (width ``hidden``, ``readout`` as in
+    :func:`build_acrkn`), a context encoder over interaction features of size
+    ``2 obs_dim + action_dim`` (``"set"``: Bayesian aggregation, ``"recurrent"``: the ordered
+    ablation) and a ``"nonlinear"`` or ``"linear"`` task term."""
     _choice("task", task, ("nonlinear", "linear"))
     _choice("encoder", encoder, ("set", "recurrent"))
     acrkn = build_acrkn(obs_dim, action_dim, latent_obs_dim, "mlp", False, hidden, num_basis, bandwidth,
-                        diff_shift, diff_scale)
+                        diff_shift, diff_scale, readout)
     ctx = 2 * obs_dim + action_dim
     enc = (BayesianContextEncoder(ctx, task_dim, (hidden,)) if encoder == "set"
            else RecurrentContextEncoder(ctx, task_dim, (hidden,)))

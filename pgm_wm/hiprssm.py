@@ -59,6 +59,7 @@ __all__ = [
     "NonlinearTaskTransform",
     "RecurrentContextEncoder",
     "HiPRSSM",
+    "CarriedHiPRSSM",
 ]
 
 WorldModel = Callable[..., tuple[Tensor, Tensor]]
@@ -262,16 +263,18 @@ class HiPRSSM(nn.Module):
         return self.acrkn.causes(actions) + [over_time(self.task_cause(task), T)]
 
     def filter(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None, context: Tensor | None = None,
-               context_mask: Tensor | None = None, task: DiagGaussian | tuple[Tensor, Tensor] | None = None
-               ) -> tuple[FilterResult, DiagGaussian]:
+               context_mask: Tensor | None = None, task: DiagGaussian | tuple[Tensor, Tensor] | None = None,
+               init: FactorizedBelief | None = None) -> tuple[FilterResult, DiagGaussian]:
         """Filter one window: ``(FilterResult, task)``. The task is inferred from the context (or
-        given as ``task = DiagGaussian(mean, var)``) once and enters every predict step."""
+        given as ``task = DiagGaussian(mean, var)``) once and enters every predict step. ``init``
+        is the state belief at the window's first step (default: the RKN's initial belief, i.e.
+        the state restarts in every window)."""
         from .acrkn import check_sequences
 
         mask = check_sequences(obs, actions, mask, model=self)
         belief = self._task(obs, context, context_mask, task)
         w = self.acrkn.rkn.encode(obs, mask)
-        out = self.acrkn.rkn.filter(w, mask=mask, causes=self.causes(actions, belief, obs.shape[1]))
+        out = self.acrkn.rkn.filter(w, mask=mask, causes=self.causes(actions, belief, obs.shape[1]), init=init)
         return out, belief
 
     def predict(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None, context: Tensor | None = None,
@@ -291,3 +294,71 @@ class HiPRSSM(nn.Module):
         """Predict :math:`o_{t+1}` for every ``t`` of the window: ``(mean, var)`` each ``(B, T, do)``."""
         mean, var, _, _ = self.predict(obs, actions, mask, context, context_mask, task)
         return mean, var
+
+
+class CarriedHiPRSSM(nn.Module):
+    r"""A HiP-RSSM run over a whole sequence, window after window, that carries its beliefs.
+
+    The sequence ``obs: (B, T, do)`` is cut into windows of ``window`` steps (padded at the end;
+    padded steps are unobserved). Window :math:`j` starts from
+
+    * the state belief the filter reached at the end of window :math:`j-1` (its last predicted
+      prior) instead of restarting from :math:`\mathcal N(0, \text{init\_var}\, I)`, and
+    * the task posterior :math:`p(l_j\mid\mathcal C_j)` from the observed interactions of window
+      :math:`j-1`; a row whose context set is empty (window :math:`j-1` was predicted open loop)
+      keeps its last task posterior. The first window uses the task prior.
+
+    So, unlike :func:`pgm_wm.evaluation.trajectory_world_model` (windows independent given their
+    contexts, run as one batch), an open-loop stretch of many windows keeps the state and the
+    task inferred before it. The windows run one after another; the result is a world model
+    ``f(obs, actions, mask) -> (mean, var)`` (index ``t`` predicts :math:`o_{t+1}`) that trains
+    with :func:`pgm_wm.training.fit` like any other. The difference readout's memory is carried
+    across window boundaries too (:meth:`pgm_wm.acrkn.DifferenceReadout.forward`, ``last``).
+    """
+
+    def __init__(self, hip: HiPRSSM, window: int, diff_shift: Tensor | Sequence[float] | None = None,
+                 diff_scale: Tensor | Sequence[float] | None = None) -> None:
+        super().__init__()
+        if not isinstance(window, int) or window < 2:
+            raise ValueError(f"window: must be an int >= 2, got {window!r}")
+        if not isinstance(hip, HiPRSSM):
+            raise ValueError(f"hip: expected a HiPRSSM, got {type(hip).__name__}")
+        self.hip, self.window = hip, window
+        do = hip.obs_dim
+        self.register_buffer("diff_shift", torch.zeros(do) if diff_shift is None else torch.as_tensor(diff_shift).clone())
+        self.register_buffer("diff_scale", torch.ones(do) if diff_scale is None else torch.as_tensor(diff_scale).clone())
+        self.obs_dim = do
+
+    def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """``obs: (B, T, do)``, ``actions: (B, T, da)``, ``mask: (B, T)`` -> ``(mean, var)`` each
+        ``(B, T, do)``; masked observations are zeroed first and never reach the beliefs."""
+        from .acrkn import check_sequences
+        from .datasets.windows import context_features, pad_to_windows
+
+        mask = check_sequences(obs, actions, mask, self.obs_dim, model=self.hip)
+        B, T, _ = obs.shape
+        valid = torch.ones(B, T, dtype=torch.bool, device=obs.device) if mask is None else mask
+        obs = torch.where(valid[..., None], obs, torch.zeros((), dtype=obs.dtype, device=obs.device))
+        k = self.window
+        o, a, v = (pad_to_windows(x, k) for x in (obs, actions, valid))
+        n_win = o.shape[1] // k
+        view = lambda x: x.reshape(B, n_win, k, *x.shape[2:])  # noqa: E731
+        shift, scale = self.diff_shift.to(obs.dtype), self.diff_scale.to(obs.dtype)
+        ctx, cmask = context_features(view(o), view(a), view(v), shift, scale)   # window j's own interactions
+        task = self.hip.infer_task(None, None, B, o)
+        init: FactorizedBelief | None = None
+        last: Tensor | None = None
+        means, vars_ = [], []
+        for j in range(n_win):
+            sl = slice(j * k, (j + 1) * k)
+            if j > 0:
+                new = self.hip.infer_task(ctx[:, j - 1], cmask[:, j - 1])
+                seen = cmask[:, j - 1].any(-1, keepdim=True)
+                task = DiagGaussian(torch.where(seen, new.mean, task.mean), torch.where(seen, new.var, task.var))
+            out, _ = self.hip.filter(o[:, sl], a[:, sl], v[:, sl], task=task, init=init)
+            d_mean, d_var = self.hip.acrkn.rkn.decoder(out.next_prior)
+            mu, var = self.hip.acrkn.readout(o[:, sl], v[:, sl], d_mean, d_var, last=last)
+            means.append(mu)
+            vars_.append(var)
+            init, last = out.next_prior[:, -1], mu[:, -1]
+        return torch.cat(means, 1)[:, :T], torch.cat(vars_, 1)[:, :T]

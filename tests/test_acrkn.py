@@ -190,6 +190,63 @@ def test_absolute_prediction_mode_is_the_decoder_output():
     torch.testing.assert_close(var, d_var + model.readout.var_floor)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_hybrid_readout_is_the_gated_mix_and_its_limits_are_the_two_readouts(dtype):
+    """Eq. (acrkn-hybrid) against a hand-written loop; gate logits of +-40 reproduce the
+    difference readout (first half of the decoder output) and the absolute one (second half)."""
+    from pgm_wm.acrkn import DifferenceReadout, HybridReadout
+
+    g = torch.Generator().manual_seed(3)
+    B, T, do = 3, 7, 2
+    obs = torch.randn(B, T, do, generator=g, dtype=dtype)
+    mask = torch.rand(B, T, generator=g) < 0.5
+    d_mean = torch.randn(B, T, 2 * do, generator=g, dtype=dtype)
+    d_var = torch.rand(B, T, 2 * do, generator=g, dtype=dtype) + 0.1
+    shift, scale = torch.tensor([0.1, -0.2]), torch.tensor([0.5, 2.0])
+    hyb = HybridReadout(do, shift, scale)
+    with torch.no_grad():
+        hyb.gate_logit.copy_(torch.tensor([0.3, -1.1]))
+    mean, var = hyb(obs, mask, d_mean, d_var)
+    gate = torch.sigmoid(torch.tensor([0.3, -1.1], dtype=dtype))
+    sh, sc, fl = shift.to(dtype), scale.to(dtype), hyb.var_floor
+    for b in range(B):
+        last = torch.zeros(do, dtype=dtype)
+        for t in range(T):
+            mem = obs[b, t] if mask[b, t] else last
+            want = gate * (mem + sh + sc * d_mean[b, t, :do]) + (1 - gate) * d_mean[b, t, do:]
+            want_var = gate**2 * sc**2 * (d_var[b, t, :do] + fl) + (1 - gate) ** 2 * (d_var[b, t, do:] + fl)
+            torch.testing.assert_close(mean[b, t], want)
+            torch.testing.assert_close(var[b, t], want_var)
+            last = want
+    assert mean.dtype == dtype
+    for logit, ref, half in ((40.0, DifferenceReadout(do, True, shift, scale), slice(0, do)),
+                             (-40.0, DifferenceReadout(do, False), slice(do, 2 * do))):
+        with torch.no_grad():
+            hyb.gate_logit.fill_(logit)
+        got, ref_out = hyb(obs, mask, d_mean, d_var), ref(obs, mask, d_mean[..., half], d_var[..., half])
+        torch.testing.assert_close(got[0], ref_out[0])
+        torch.testing.assert_close(got[1], ref_out[1])
+    with pytest.raises(ValueError, match="^delta_mean"):
+        hyb.step(obs[:, 0], d_mean[:, 0, :do], d_var[:, 0, :do])
+
+
+def test_hybrid_acrkn_builds_trains_and_checks_its_decoder_size():
+    from pgm_wm.acrkn import AcRKN, HybridReadout
+    from pgm_wm.builders import build_acrkn
+
+    model = build_acrkn(3, 2, latent_obs_dim=4, hidden=8, num_basis=2, bandwidth=1, readout="hybrid")
+    assert isinstance(model.readout, HybridReadout) and model.obs_dim == 3 and model.decoder.out_dim == 6
+    obs, act, mask = torch.randn(2, 6, 3), torch.randn(2, 6, 2), torch.rand(2, 6) < 0.7
+    mean, var = model(obs, act, mask)
+    assert mean.shape == var.shape == (2, 6, 3) and bool((var > 0).all())
+    (mean.square().mean() + var.mean()).backward()
+    assert model.readout.gate_logit.grad is not None and bool(model.readout.gate_logit.grad.abs().sum() > 0)
+    with pytest.raises(ValueError, match="^decoder"):
+        AcRKN(model.encoder, model.transition, model.control, model.decoder, readout=HybridReadout(6))
+    with pytest.raises(ValueError, match="^readout"):
+        build_acrkn(3, 2, readout="sum")
+
+
 def test_difference_scaling_from_stats():
     stats = {"obs_mean": torch.tensor([1.0, 2.0]), "obs_std": torch.tensor([2.0, 4.0]),
              "diff_mean": torch.tensor([0.2, -0.4]), "diff_std": torch.tensor([0.5, 1.0])}

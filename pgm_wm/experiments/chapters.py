@@ -76,12 +76,13 @@ def _dims(s: Splits) -> tuple[int, int]:
 
 
 def ch4_experiment(dataset: str = "memory_arm", oracle: bool = True) -> Experiment:
-    """Chapter 4: ac-RKN variants (difference / absolute readout, norm-bounded A) against the
+    """Chapter 4: ac-RKN variants (difference / absolute / hybrid readout, norm-bounded A) against the
     RKN with actions as observations, LSTM, GRU, FFNN and the reference rows; open-loop
     prediction 1–50 steps after a 50-step context (the chapter's sizes, :mod:`pgm_wm.builders`)."""
     models: dict[str, ModelSpec] = {
         "ac-RKN (difference readout)": ModelSpec(lambda s: build_acrkn(*_dims(s), **_readout(s))),
-        "ac-RKN (absolute readout)": ModelSpec(lambda s: _absolute(build_acrkn(*_dims(s), **_readout(s)))),
+        "ac-RKN (absolute readout)": ModelSpec(lambda s: build_acrkn(*_dims(s), readout="absolute", **_readout(s))),
+        "ac-RKN (hybrid readout)": ModelSpec(lambda s: build_acrkn(*_dims(s), readout="hybrid", **_readout(s))),
         "ac-RKN, ‖A‖≤1": ModelSpec(lambda s: build_acrkn(*_dims(s), bounded=True, **_readout(s))),
         "RKN (actions as obs.)": ModelSpec(lambda s: build_baseline("rkn_actions_as_obs", *_dims(s), **_readout(s))),
         "LSTM": ModelSpec(lambda s: build_baseline("lstm", *_dims(s), **_readout(s))),
@@ -96,12 +97,6 @@ def ch4_experiment(dataset: str = "memory_arm", oracle: bool = True) -> Experime
                                      ("true", "nominal")))
     return Experiment(f"ch4_{dataset}", f"Chapter 4, open-loop prediction on {dataset}", lambda: _splits(dataset),
                       models, protocol, units="mrad", scale=1e3)
-
-
-def _absolute(model: nn.Module) -> nn.Module:
-    """The same ac-RKN with the absolute readout (the decoder predicts the observation itself)."""
-    model.readout.predict_differences = False
-    return model
 
 
 class HiPRSSMWindowModel(nn.Module):
@@ -184,7 +179,7 @@ def ch6_experiment(dataset: str = "slow_payload_arm", window: int = 25) -> Exper
     models: dict[str, ModelSpec] = {
         f"MTS3 (H = {window})": ModelSpec(lambda s: build_mts3(*_dims(s), m, window, hid)),
         "MTS3 fast level alone": ModelSpec(lambda s: build_hierarchical_mts3(*_dims(s), m, [], hid)),
-        "ac-RKN (Chapter 4)": ModelSpec(lambda s: _absolute(build_acrkn(*_dims(s), latent_obs_dim=m, hidden=32))),
+        "ac-RKN (Chapter 4)": ModelSpec(lambda s: build_acrkn(*_dims(s), latent_obs_dim=m, hidden=32, readout="absolute")),
         "LSTM": ModelSpec(lambda s: build_baseline("lstm", *_dims(s), hidden=32, predict_differences=False)),
         "GRU": ModelSpec(lambda s: build_baseline("gru", *_dims(s), hidden=32, predict_differences=False)),
         "Transformer": ModelSpec(lambda s: build_baseline("transformer", *_dims(s))),
