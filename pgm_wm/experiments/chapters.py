@@ -170,9 +170,22 @@ def ch5_experiment(dataset: str = "hidden_payload_arm", window: int = 25, observ
                       notes={"window": H, "observed_in_window": c, "dt_s": 0.02, "scored": "joint angles q1, q2"})
 
 
+def _carried_hiprssm(s: Splits, latent_obs_dim: int, window: int) -> nn.Module:
+    """The Chapter 5 HiP-RSSM (linear task term, absolute readout as the other Chapter 6 rows)
+    run window after window with its state and last task posterior carried across windows
+    (:class:`pgm_wm.hiprssm.CarriedHiPRSSM`), so an open-loop stretch keeps what the observed
+    windows revealed. Trained like every other row, on the same crops and masks."""
+    from ..hiprssm import CarriedHiPRSSM
+
+    r = _readout(s)
+    hip = build_hiprssm(*_dims(s), latent_obs_dim, 8, 32, 4, 2, task="linear", readout="absolute", **r)
+    return CarriedHiPRSSM(hip, window, r["diff_shift"], r["diff_scale"])
+
+
 def ch6_experiment(dataset: str = "slow_payload_arm", window: int = 25) -> Experiment:
     """Chapter 6: MTS3 (window ``H``) against its fast level alone (an ac-RKN with a constant
-    transition and no task), the Chapter 4 ac-RKN, LSTM, GRU, a Transformer and the reference rows;
+    transition and no task), the Chapter 4 ac-RKN, the Chapter 5 HiP-RSSM carrying its beliefs
+    across windows (:func:`_carried_hiprssm`), LSTM, GRU, a Transformer and the reference rows;
     open-loop prediction up to 8 s (200 steps at 25 Hz) after a context of two windows, trained on
     crops of context + horizon with two-scale imputation (the same masks for every model)."""
     hid, m = (32,), 8
@@ -180,6 +193,7 @@ def ch6_experiment(dataset: str = "slow_payload_arm", window: int = 25) -> Exper
         f"MTS3 (H = {window})": ModelSpec(lambda s: build_mts3(*_dims(s), m, window, hid)),
         "MTS3 fast level alone": ModelSpec(lambda s: build_hierarchical_mts3(*_dims(s), m, [], hid)),
         "ac-RKN (Chapter 4)": ModelSpec(lambda s: build_acrkn(*_dims(s), latent_obs_dim=m, hidden=32, readout="absolute")),
+        "HiP-RSSM (Chapter 5), carried": ModelSpec(lambda s: _carried_hiprssm(s, m, window)),
         "LSTM": ModelSpec(lambda s: build_baseline("lstm", *_dims(s), hidden=32, predict_differences=False)),
         "GRU": ModelSpec(lambda s: build_baseline("gru", *_dims(s), hidden=32, predict_differences=False)),
         "Transformer": ModelSpec(lambda s: build_baseline("transformer", *_dims(s))),
