@@ -147,3 +147,23 @@ def test_score_dims_score_only_those_dimensions():
         Protocol(context_len=5, horizon=10, horizons=(1,), eval_stride=5, score_dims=())
     with pytest.raises(ValueError, match="^score_dims"):
         score(model, splits, replace(p_all, score_dims=(2,)))
+
+
+def test_validation_choice_uses_validation_scores_only():
+    """The pick follows best_valid, whatever the test errors say, and the sentence lists all."""
+    from pgm_wm.experiments.results import validation_choice
+
+    def entry(valids, test_err):
+        return {"runs": [{"best_valid": v} for v in valids], "sq_err": np.full((len(valids), 1, 3), test_err)}
+
+    res = {"models": {"a": entry([0.3, 0.5], 0.01), "b": entry([0.2, 0.4], 9.0), "c": entry([float("nan"), 0.1], 0.0)}}
+    best, sentence = validation_choice(res, ["a", "b", "c"])
+    assert best == "b" and "a 0.4" in sentence and "b 0.3" in sentence and "2 seeds" in sentence
+    assert validation_choice(res, ["a", "c"])[0] == "a"            # a NaN validation score never wins
+    with pytest.raises(ValueError, match="^variants"):
+        validation_choice(res, ["a"])
+    with pytest.raises(ValueError, match="^variants"):
+        validation_choice(res, ["a", "zzz"])
+    res["models"]["r"] = {"runs": [{"epochs": 0}], "sq_err": np.zeros((1, 1, 3))}
+    with pytest.raises(ValueError, match="^variants"):
+        validation_choice(res, ["a", "r"])

@@ -31,6 +31,7 @@ import numpy as np
 from .stats import Interval, mean_interval, paired_ratio, rmse_interval
 
 __all__ = [
+    "validation_choice",
     "provenance",
     "save_results",
     "load_results",
@@ -193,6 +194,28 @@ def conclusions(results: Mapping[str, Any], candidates: Sequence[str] | None = N
         sentences.append(f"At k = {h}, {best} has the lowest RMSE; its ratio to the runner-up {second} is "
                          f"{ratio.format('.3f')} ({verdict}).")
     return sentences
+
+
+def validation_choice(results: Mapping[str, Any], variants: Sequence[str]) -> tuple[str, str]:
+    """Pick one of ``variants`` (e.g. three readouts of one model) by validation alone: the one
+    with the lowest mean, over seeds, of the open-loop validation RMSE of its selected epoch
+    (``runs[i]["best_valid"]``, normalized units). The test split plays no part. Returns
+    ``(name, sentence)``; the sentence gives every variant's mean validation RMSE."""
+    if len(variants) < 2:
+        raise ValueError("variants: need at least two models to choose from")
+    scores = {}
+    for n in variants:
+        if n not in results["models"]:
+            raise ValueError(f"variants: unknown model {n!r}")
+        vals = [r.get("best_valid") for r in results["models"][n]["runs"]]
+        if any(v is None for v in vals):
+            raise ValueError(f"variants: {n!r} has no validation score (not a trained model?)")
+        scores[n] = float(np.mean(vals))
+    best = min(scores, key=lambda n: scores[n] if math.isfinite(scores[n]) else math.inf)
+    listed = "; ".join(f"{n} {v:.4g}" for n, v in scores.items())
+    return best, (f"Chosen on validation, never on the test split: {best} has the lowest mean validation "
+                  f"open-loop RMSE of its selected epoch over {len(results['models'][best]['runs'])} seeds "
+                  f"(normalized units: {listed}).")
 
 
 def provenance_text(results: Mapping[str, Any]) -> str:
