@@ -45,7 +45,7 @@ from typing import Sequence
 import torch
 from torch import Tensor, nn
 
-from ._checks import as_tensor, check_finite, check_last_dims, check_mask, check_positive, check_same_dtype, check_tensor
+from ._checks import as_tensor, check_finite, check_last_dims, check_mask, check_positive, check_same_dtype, check_tensor, mask_observations
 from .beliefs import DiagGaussian, FactorizedBelief
 from .factorized import block_inverse
 from .layers import mlp, positive_variance
@@ -322,10 +322,10 @@ def masked_max_pool(h: Tensor, mask: Tensor | None = None) -> Tensor:
 def zero_padding(x: Tensor, mask: Tensor | None) -> Tensor:
     """Set entries ``x: (..., F)`` (set elements, time steps) whose ``mask: (...)`` is False to zero
     *before* a network sees them, so that whatever padding holds (NaN included) can reach neither the outputs nor the
-    parameter gradients (a masked NaN still gives ``0 * NaN = NaN`` in a backward pass)."""
-    if mask is None:
-        return x
-    return torch.where(mask[..., None], x, torch.zeros((), dtype=x.dtype, device=x.device))
+    parameter gradients (a masked NaN still gives ``0 * NaN = NaN`` in a backward pass).
+    The same operation as :func:`pgm_wm._checks.mask_observations`, which it calls (with its
+    mask check)."""
+    return mask_observations(x, mask)
 
 
 # ----------------------------------------------------------------------------- learned modules
