@@ -65,7 +65,8 @@ def provenance(**extra: Any) -> dict[str, Any]:
     """Commit, command, date and machine of the current run, plus ``extra`` entries."""
     import torch
 
-    status = _git("status", "--porcelain", "--untracked-files=no")
+    # "dirty": tracked files changed other than results/ (the outputs of earlier runs are not code)
+    status = _git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)results")
     info: dict[str, Any] = {
         "commit": _git("rev-parse", "HEAD") or "unknown",
         "dirty": bool(status) if status is not None else None,
