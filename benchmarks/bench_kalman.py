@@ -250,6 +250,8 @@ def table(args) -> dict:
     ref_run = make_pgm("fast")
     rows: dict = {}
     for name, (maker, slow) in CONTENDERS.items():
+        if args.only and name != "pgm_wm fast" and not any(k in name for k in args.only):
+            continue
         try:
             run = maker()
         except ImportError as err:
@@ -360,6 +362,8 @@ def main() -> None:
     ap.add_argument("--slow-seqs", type=int, default=16, help="sequences timed for the loop-per-sequence peers")
     ap.add_argument("--scaling", action="store_true", help="also run the scaling curves (minutes)")
     ap.add_argument("--quick", action="store_true", help="32 sequences × 200 steps, one repeat")
+    ap.add_argument("--only", nargs="+", metavar="NAME", help="run only the contenders whose name contains one of "
+                    "these (e.g. --only 'pgm_wm fast' dynamax); the JSON gets the suffix _only")
     args = ap.parse_args()
     if args.quick:
         args.n_seq, args.steps, args.repeats, args.slow_seqs = 32, 200, 1, 4
@@ -376,7 +380,7 @@ def main() -> None:
     if args.scaling:
         report["scaling"] = scaling(args)
     RESULTS.mkdir(exist_ok=True)
-    suffix = "_quick" if args.quick else ""
+    suffix = ("_quick" if args.quick else "") + ("_only" if args.only else "")
     if args.scaling:
         report["figures"] = plot_scaling(report["scaling"], RESULTS) if not args.quick else []
     (RESULTS / f"kalman_bench{suffix}.json").write_text(json.dumps(report, indent=1))

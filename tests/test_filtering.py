@@ -194,3 +194,35 @@ def test_untrained_models_stay_finite_over_10000_missing_steps(name):
     with torch.no_grad():
         mean, var = model(obs, mask) if name == "rkn" else model(obs, act, mask)
     assert bool(torch.isfinite(mean).all()) and bool(torch.isfinite(var).all()) and bool((var > 0).all())
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("masked", [True, False])
+def test_fast_path_gradients_equal_the_reference_loop(dtype, masked):
+    """Training differentiates the fast path (MTS3's fast level): its gradients with respect to
+    the prior, the observations, the transition, its noise and the inputs equal those of the
+    reference loop, with and without a mask, and uncompiled equals compiled without a gradient."""
+    prior, A, q, obs, mask, inputs = random_problem(3, dtype)
+    mask = mask if masked else None
+    leaves = [prior.mean, prior.var_upper, prior.var_lower, prior.cov_side, A, q, obs.mean, obs.var,
+              inputs.mean, inputs.var_upper, inputs.var_lower, inputs.cov_side]
+    grads = []
+    for fn in FILTERS:
+        xs = [x.detach().clone().requires_grad_(True) for x in leaves]
+        p, o = FactorizedBelief(*xs[:4]), DiagGaussian(xs[6], xs[7])
+        res = fn(p, xs[4], xs[5], o, mask, FactorizedBelief(*xs[8:]))
+        loss = sum((getattr(res, f).mean.square().sum() + getattr(res, f).var_upper.sum() + getattr(res, f).var_lower.sum()
+                    + getattr(res, f).cov_side.sum()) for f in ("prior", "posterior", "next_prior"))
+        grads.append(torch.autograd.grad(loss, xs, allow_unused=True))
+    tol = dict(rtol=1e-4, atol=1e-5) if dtype == torch.float32 else dict(rtol=1e-10, atol=1e-12)
+    for a, b in zip(*grads):
+        assert (a is None) == (b is None)
+        if a is not None:
+            torch.testing.assert_close(b, a, **tol)
+    with torch.no_grad():
+        fast = diagonal_factorized_filter(prior, A, q, obs, mask, inputs)
+        ref = factorized_filter(prior, A, q, obs, mask, inputs)
+    tol = dict(rtol=2e-6, atol=1e-7) if dtype == torch.float32 else dict(rtol=1e-13, atol=1e-15)
+    for name in ("prior", "posterior", "next_prior"):
+        for x, y in zip(getattr(ref, name)._tensors(), getattr(fast, name)._tensors()):
+            torch.testing.assert_close(y, x, **tol)
