@@ -401,10 +401,12 @@ def diagonal_factorized_filter(
     is Eq. (rkn-update) in product form (:math:`r = \sigma^{obs}\odot g + 1 - m_t` equals
     :math:`\sigma^{obs}\oslash S` where observed and 1 where not: no cancellation),
 
-    .. math:: z^{u+} = z^u + \sigma^u\odot g\odot(w - z^u),\quad
-              z^{l+} = z^l + \sigma^s\odot g\odot(w - z^u),\quad
-              \sigma^{u+} = \sigma^u\odot r,\quad \sigma^{s+} = \sigma^s\odot r,\quad
-              \sigma^{l+} = \sigma^l - \sigma^s\odot\sigma^s\odot g,
+    .. math:: \begin{aligned}
+              z^{u+} &= z^u + \sigma^u\odot g\odot(w - z^u), &
+              z^{l+} &= z^l + \sigma^s\odot g\odot(w - z^u),\\
+              \sigma^{u+} &= \sigma^u\odot r,\quad \sigma^{s+} = \sigma^s\odot r, &
+              \sigma^{l+} &= \sigma^l - \sigma^s\odot\sigma^s\odot g,
+              \end{aligned}
 
     and the predict is Eq. (rkn-predict), exact for diagonal blocks:
     :math:`\sigma^{u-} = a_{11}^2\sigma^u + 2a_{11}a_{12}\sigma^s + a_{12}^2\sigma^l + q^u`, and

@@ -10,8 +10,11 @@ Every element and the operator follow from the chapter's own identities:
   map of :math:`z_{t-1}`, by the update Eq. (kf-update) of the "prior"
   :math:`\mathcal N(Fz_{t-1} + c_{t-1}, Q)`: with :math:`S = HQH^\top + R`, :math:`K = QH^\top S^{-1}`,
 
-  .. math:: p(z_t\mid z_{t-1}, y_t) = \mathcal N\big(A_t z_{t-1} + b_t,\; C_t\big),\quad
-            A_t = (I - KH)F,\ b_t = c_{t-1} + K(y_t - Hc_{t-1}),\ C_t = (I-KH)Q(I-KH)^\top + KRK^\top,
+  .. math:: \begin{aligned}
+            p(z_t\mid z_{t-1}, y_t) &= \mathcal N\big(A_t z_{t-1} + b_t,\; C_t\big),\quad
+            A_t = (I - KH)F,\\
+            b_t &= c_{t-1} + K(y_t - Hc_{t-1}),\quad C_t = (I-KH)Q(I-KH)^\top + KRK^\top,
+            \end{aligned}
 
   and the evidence :math:`p(y_t \mid z_{t-1}) \propto \exp(-\tfrac12 z_{t-1}^\top J_t z_{t-1} +
   \eta_t^\top z_{t-1})` (Eq. gauss-evidence read as a function of :math:`z_{t-1}`) with
