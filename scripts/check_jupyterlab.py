@@ -41,6 +41,9 @@ import time
 import urllib.request
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from check_overflow import find_chromium  # noqa: E402  (one way to find the browser)
+
 ROOT = Path(__file__).resolve().parent.parent
 TOKEN = "pgm-wm-check"
 
@@ -123,14 +126,6 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def find_chromium() -> str | None:
-    for name in (os.environ.get("CHROMIUM", ""), "chromium", "chromium-browser",
-                 "google-chrome", "google-chrome-stable"):
-        if name and shutil.which(name):
-            return shutil.which(name)
-    return None
 
 
 def wait_http(url: str, timeout: float) -> str:
