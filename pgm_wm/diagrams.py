@@ -33,6 +33,15 @@ def _diagram_axes(ax: Any, figsize: tuple[float, float]) -> tuple[Any, Any]:
     return fig, ax
 
 
+def _finish_diagram(ax: Any, xlim: tuple[float, float], ylim: tuple[float, float], title: str) -> None:
+    """The common frame of the box-and-arrow diagrams: limits, equal aspect, no axes, a title."""
+    ax.set_xlim(*xlim)
+    ax.set_ylim(*ylim)
+    ax.set_aspect("equal")
+    ax.axis("off")
+    ax.set_title(title, fontsize=10)
+
+
 def _diagram_box(ax: Any, x: float, y: float, text: str, w: float = 1.9, h: float = 0.8,
                  fc: str = "white", fontsize: float = 10) -> None:
     """A rounded box of width ``w`` and height ``h`` centred at ``(x, y)`` holding ``text``."""
@@ -91,12 +100,8 @@ def plot_rkn_cell(ax: Any | None = None) -> Any:
     ax.text(9.4, 0.75, "loss: NLL of $o_{t}$\nunder $\\mathcal{N}(\\hat o_t, \\hat\\sigma_t)$",
             fontsize=8.5, ha="center", va="bottom", color="0.3")
     ax.text(5.5, 3.05, "the only recurrence: the belief", fontsize=9, ha="center", color="0.3")
-    ax.set_xlim(-1.0, 10.6)
-    ax.set_ylim(-2.7, 3.4)
-    ax.set_aspect("equal")
-    ax.axis("off")
-    ax.set_title("One RKN step: encoder $\\to$ update $\\to$ decoder, and predict to the next step",
-                 fontsize=10)
+    _finish_diagram(ax, (-1.0, 10.6), (-2.7, 3.4),
+                    "One RKN step: encoder $\\to$ update $\\to$ decoder, and predict to the next step")
     return fig
 
 
@@ -144,12 +149,8 @@ def plot_factorized_covariance(m: int = 4, ax: Any | None = None) -> Any:
     ax.text(-0.3, m / 2, "lower $z^l$", rotation=90, ha="right", va="center", fontsize=10)
     ax.text(m / 2, -0.35, "$\\operatorname{diag}(\\sigma^s)$", ha="center", va="top", fontsize=10)
     ax.text(m + m / 2, -0.35, "$\\operatorname{diag}(\\sigma^l)$", ha="center", va="top", fontsize=10)
-    ax.set_xlim(-1.2, n + 0.3)
-    ax.set_ylim(-1.2, n + 1.0)
-    ax.set_aspect("equal")
-    ax.axis("off")
-    ax.set_title(f"$\\Sigma$ of a factorized belief, $m={m}$: {3 * m} stored numbers "
-                 f"instead of {m * (2 * m + 1)}", fontsize=10)
+    _finish_diagram(ax, (-1.2, n + 0.3), (-1.2, n + 1.0),
+                    f"$\\Sigma$ of a factorized belief, $m={m}$: {3 * m} stored numbers instead of {m * (2 * m + 1)}")
     return fig
 
 
@@ -232,12 +233,8 @@ def plot_mts3_graphical_model(steps: int = 3, ax: Any | None = None) -> Any:
             "dashed red: the fast steps of window $k$ use the slow prior $p(l_k\\mid\\beta_{1:k-1},\\alpha_{1:k})$;\n"
             "$\\beta_{k,1:H}$ then updates $l_k$ as a set, and the posterior is predicted to $l_{k+1}$",
             ha="right", va="top", fontsize=8.5, color="0.25")
-    ax.set_xlim(-0.3, 2 * width + 1.1)
-    ax.set_ylim(-1.8, 5.9)
-    ax.set_aspect("equal")
-    ax.axis("off")
-    ax.set_title("MTS3: a slow task SSM (top) that reconfigures a fast SSM (bottom), window by window",
-                 fontsize=10)
+    _finish_diagram(ax, (-0.3, 2 * width + 1.1), (-1.8, 5.9),
+                    "MTS3: a slow task SSM (top) that reconfigures a fast SSM (bottom), window by window")
     return fig
 
 
