@@ -487,10 +487,12 @@ class AcRKN(nn.Module):
         w = self.rkn.encode(obs, mask)
         return self.rkn.filter(w, mask=mask, causes=self.causes(actions) + list(extra_causes), init=init)
 
-    def decode_predictions(self, out: FilterResult, obs: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
-        """Decode ``out.next_prior`` and apply Eq. (acrkn-diff): ``(mean, var)`` each ``(B, T, do)``."""
+    def decode_predictions(self, out: FilterResult, obs: Tensor, mask: Tensor | None,
+                           last: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Decode ``out.next_prior`` and apply Eq. (acrkn-diff): ``(mean, var)`` each ``(B, T, do)``.
+        ``last``: the readout's memory carried from before ``obs[:, 0]`` (:meth:`DifferenceReadout.forward`)."""
         d_mean, d_var = self.rkn.decoder(out.next_prior)
-        return self.readout(obs, mask, d_mean, d_var)
+        return self.readout(obs, mask, d_mean, d_var, last=last)
 
     def forward(
         self,

@@ -48,7 +48,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ._checks import check_finite, check_last_dims, check_mask, check_tensor
+from ._checks import check_finite, check_last_dims, check_mask, check_tensor, mask_observations
 from .beliefs import DiagGaussian, FactorizedBelief
 from .factorized import linear_cause
 from .filtering import FilterResult
@@ -338,7 +338,7 @@ class CarriedHiPRSSM(nn.Module):
         mask = check_sequences(obs, actions, mask, self.obs_dim, model=self.hip)
         B, T, _ = obs.shape
         valid = torch.ones(B, T, dtype=torch.bool, device=obs.device) if mask is None else mask
-        obs = torch.where(valid[..., None], obs, torch.zeros((), dtype=obs.dtype, device=obs.device))
+        obs = mask_observations(obs, valid)
         k = self.window
         o, a, v = (pad_to_windows(x, k) for x in (obs, actions, valid))
         n_win = o.shape[1] // k
@@ -356,8 +356,7 @@ class CarriedHiPRSSM(nn.Module):
                 seen = cmask[:, j - 1].any(-1, keepdim=True)
                 task = DiagGaussian(torch.where(seen, new.mean, task.mean), torch.where(seen, new.var, task.var))
             out, _ = self.hip.filter(o[:, sl], a[:, sl], v[:, sl], task=task, init=init)
-            d_mean, d_var = self.hip.acrkn.rkn.decoder(out.next_prior)
-            mu, var = self.hip.acrkn.readout(o[:, sl], v[:, sl], d_mean, d_var, last=last)
+            mu, var = self.hip.acrkn.decode_predictions(out, o[:, sl], v[:, sl], last=last)
             means.append(mu)
             vars_.append(var)
             init, last = out.next_prior[:, -1], mu[:, -1]
