@@ -21,7 +21,7 @@ from .runner import Experiment, ModelSpec, Protocol, Splits, validation_rmse
 if TYPE_CHECKING:  # pragma: no cover
     from ..training import FitHistory
 
-__all__ = ["EXPERIMENTS", "ch4_experiment", "ch5_experiment", "ch6_experiment", "HiPRSSMWindowModel", "train_hiprssm"]
+__all__ = ["EXPERIMENTS", "HIPRSSM_SIZES", "ch4_experiment", "ch5_experiment", "ch6_experiment", "HiPRSSMWindowModel", "train_hiprssm"]
 
 
 @lru_cache(maxsize=None)
@@ -137,6 +137,11 @@ def train_hiprssm(model: HiPRSSMWindowModel, s: Splits, p: Protocol, seed: int, 
                progress=False, budget_s=budget_s, patience=p.patience, desc="HiP-RSSM")
 
 
+HIPRSSM_SIZES = dict(latent_obs_dim=8, task_dim=8, hidden=32, num_basis=4, bandwidth=2)
+"""The HiP-RSSM sizes of the chapter-5 study (and of its chapter-6 row); the ablations of the
+chapter-5 notebook build their variants with them."""
+
+
 def ch5_experiment(dataset: str = "hidden_payload_arm", window: int = 25, observed: int = 12) -> Experiment:
     """Chapter 5: HiP-RSSM (linear task term, set encoder) against its own ac-RKN core without the
     task cause, the Chapter 4 ac-RKN, LSTM, GRU and the reference rows. Every evaluation window is
@@ -146,11 +151,11 @@ def ch5_experiment(dataset: str = "hidden_payload_arm", window: int = 25, observ
     always-observed prefix, the HiP-RSSM on windows with the previous window as context
     (:func:`train_hiprssm`)."""
     H, c = window, observed
-    sizes = dict(latent_obs_dim=8, hidden=32, num_basis=4, bandwidth=2)
+    sizes = {k: v for k, v in HIPRSSM_SIZES.items() if k != "task_dim"}   # the core: no task
 
     def hip(s: Splits) -> nn.Module:
         r = _readout(s)
-        return HiPRSSMWindowModel(build_hiprssm(*_dims(s), 8, 8, 32, 4, 2, task="linear", **r), H,
+        return HiPRSSMWindowModel(build_hiprssm(*_dims(s), **HIPRSSM_SIZES, task="linear", **r), H,
                                   r["diff_shift"], r["diff_scale"])
 
     models: dict[str, ModelSpec] = {
@@ -178,7 +183,8 @@ def _carried_hiprssm(s: Splits, latent_obs_dim: int, window: int) -> nn.Module:
     from ..hiprssm import CarriedHiPRSSM
 
     r = _readout(s)
-    hip = build_hiprssm(*_dims(s), latent_obs_dim, 8, 32, 4, 2, task="linear", readout="absolute", **r)
+    hip = build_hiprssm(*_dims(s), **{**HIPRSSM_SIZES, "latent_obs_dim": latent_obs_dim}, task="linear",
+                        readout="absolute", **r)
     return CarriedHiPRSSM(hip, window, r["diff_shift"], r["diff_scale"])
 
 
