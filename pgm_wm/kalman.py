@@ -155,16 +155,11 @@ def kf_update(
 
 def stack_gaussians(beliefs: list[Gaussian], dim: int = -1) -> Gaussian:
     """Stack beliefs (broadcast to a common batch shape) along a new batch axis ``dim``
-    (counted among the batch dimensions; ``-1`` = just before the event axes)."""
-    if len(beliefs) == 0:
-        raise ValueError("beliefs: need at least one belief to stack")
-    batch = torch.broadcast_shapes(*(b.batch_shape for b in beliefs))
-    n = beliefs[0].dim
-    d = dim if dim >= 0 else len(batch) + 1 + dim
-    return Gaussian(
-        torch.stack([b.mean.expand(*batch, n) for b in beliefs], d),
-        torch.stack([b.cov.expand(*batch, n, n) for b in beliefs], d),
-    )
+    (counted among the batch dimensions; ``-1`` = just before the event axes).
+
+    :meth:`pgm_wm.beliefs.Gaussian.stack` with ``dim`` counted among the batch axes instead of
+    in the ``mean`` tensor."""
+    return Gaussian.stack(beliefs, dim if dim >= 0 else dim - 1)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -277,7 +272,7 @@ def kalman_filter_reference(
         next_priors.append(next_prior.expand(*batch))
         logliks.append(loglik.expand(batch))
         prior = next_prior
-    return FilterResult(stack_gaussians(priors), stack_gaussians(posteriors), stack_gaussians(next_priors),
+    return FilterResult(Gaussian.stack(priors), Gaussian.stack(posteriors), Gaussian.stack(next_priors),
                         torch.stack(logliks, -1))
 
 
@@ -383,7 +378,7 @@ def rts_smoother_reference(result: FilterResult, F: Tensor, Q: Tensor) -> Gaussi
         mean = p.mean + (G @ (s.mean - q.mean).unsqueeze(-1)).squeeze(-1)
         cov = A @ p.cov @ A.transpose(-1, -2) + G @ (Q + s.cov) @ G.transpose(-1, -2)
         smoothed.append(Gaussian(mean, _sym(cov)))
-    return stack_gaussians(smoothed[::-1])
+    return Gaussian.stack(smoothed[::-1])
 
 
 def rts_smoother(result: FilterResult, F: Tensor, Q: Tensor) -> Gaussian:
