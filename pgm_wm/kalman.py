@@ -52,7 +52,8 @@ from ._checks import (
 )
 from .filtering import FilterResult
 from .gaussian import Gaussian, _predict_core, _sym, condition_with_evidence
-from .kalman_fast import _compact, _filter_fast, _rts_per_sequence
+from . import _jit
+from .kalman_fast import _compact, _filter_fast, _rts_jit
 
 __all__ = [
     "kf_predict",
@@ -401,8 +402,8 @@ def rts_smoother(result: FilterResult, F: Tensor, Q: Tensor) -> Gaussian:
     needs_grad = torch.is_grad_enabled() and any(
         x.requires_grad for x in (post.mean, post.cov, nxt.mean, nxt.cov, F, Q))
     if shared[0].cov.shape[:-3] == batch and len(batch) > 0 and F.ndim == 2 and Q.ndim == 2 \
-            and not needs_grad and T > 1:
-        return _rts_per_sequence(post, nxt, F, Q)
+            and not needs_grad and T > 1 and _jit.enabled(post.mean, F):
+        return _rts_jit(post, nxt, F, Q)
     G, L = _smoother_gains(shared[0], shared[1], F, Q)
     m_f, m_p = post.mean.expand(*batch, T, n), nxt.mean.expand(*batch, T, n)
     Gt = G.transpose(-1, -2)

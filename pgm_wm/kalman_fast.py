@@ -17,9 +17,11 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from . import _jit
 from .filtering import FilterResult
 from .gaussian import _LOG_2PI, Gaussian, _predict_cov, _sandwich_operator, _sym
 
@@ -159,19 +161,18 @@ def _filter_fast(
             elif x.data_ptr() != bufs[name][t].data_ptr():
                 bufs[name][t].copy_(x)
 
-        if params_2d and m <= 2 and not needs_grad:
-            bufs = _masked_loop(F, H, Q, R, flat(init.cov, 2), flat(init.mean, 1), y_tm, off_tm, w_all, T, n, m, N)
+        if all(x.ndim == 2 for x in (F, H, Q, R)) and not needs_grad and _jit.enabled(y, F):
+            return _filter_jit(flat(y, 2), w_all, None if offsets is None else flat(offsets, 2),
+                               F, H, Q, R, flat(init.mean, 1), flat(init.cov, 2), batch)
         step = _SequenceStep(F, H, Q, R, n, m, N) if params_2d else None
         P, mean = flat(init.cov, 2), flat(init.mean, 1)
         if step is not None:
             P, mean = P.permute(1, 2, 0).contiguous(), mean.T.contiguous()
             y_soa = y_tm.permute(0, 2, 1).contiguous()                             # (T, m, N)
             u_soa = None if off_tm is None else off_tm.permute(0, 2, 1).contiguous()
-        done = bool(bufs.pop("_done", False))
-        if not done:
-            put("P", 0, P, soa=step is not None)
-            put("M", 0, mean, soa=step is not None)
-        for t in range(0 if not done else T, T):
+        put("P", 0, P, soa=step is not None)
+        put("M", 0, mean, soa=step is not None)
+        for t in range(T):
             w = None if w_all is None else w_all[:, t]
             if step is not None:
                 P, mean = step(P, mean, y_soa[t], w, None if u_soa is None else u_soa[t], t, out)
@@ -216,6 +217,32 @@ def _filter_fast(
         return Gaussian(mean, cov)
 
     return FilterResult(belief(M[:T], cov_prior), belief(M_post, cov_post), belief(M[1:], cov_next), ll)
+
+
+def _filter_jit(y: Tensor, w: Tensor | None, offsets: Tensor | None, F: Tensor, H: Tensor, Q: Tensor,
+                R: Tensor, mean0: Tensor, cov0: Tensor, batch: torch.Size) -> FilterResult[Gaussian]:
+    """The per-sequence path for unbatched ``F, H, Q, R`` without a gradient, compiled
+    (:func:`pgm_wm.kalman_jit.filter_loop`, batch-last): ``y: (N, T, m)``, ``w: (N, T)`` 1/0 or
+    ``None``, ``offsets: (N, T, n)`` or ``None``, ``mean0: (N, n)``, ``cov0: (N, n, n)``.
+    The results are batch-first views of the batch-last buffers."""
+    from .kalman_jit import filter_loop
+
+    N, T, m = y.shape
+    n = F.shape[-1]
+    dt = y.dtype
+    arr = lambda x: np.ascontiguousarray(_jit.as_array(x))  # noqa: E731
+    w = torch.ones(T, N, dtype=dt) if w is None else w.T
+    off = torch.zeros(T, n, N, dtype=dt) if offsets is None else offsets.permute(1, 2, 0)
+    M, P = torch.empty(T + 1, n, N, dtype=dt), torch.empty(T + 1, n, n, N, dtype=dt)
+    Mp, Pp, ll = torch.empty(T, n, N, dtype=dt), torch.empty(T, n, n, N, dtype=dt), torch.empty(T, N, dtype=dt)
+    M[0], P[0] = mean0.T, cov0.permute(1, 2, 0)
+    filter_loop(arr(y.permute(1, 2, 0)), arr(w), arr(off), arr(F), arr(H), arr(Q), arr(R),
+                M.numpy(), P.numpy(), Mp.numpy(), Pp.numpy(), ll.numpy())
+
+    def belief(mean: Tensor, cov: Tensor) -> Gaussian:       # (T, n, N), (T, n, n, N) -> batch first
+        return Gaussian(mean.permute(2, 0, 1).reshape(*batch, T, n), cov.permute(3, 0, 1, 2).reshape(*batch, T, n, n))
+
+    return FilterResult(belief(M[:T], P[:T]), belief(Mp, Pp), belief(M[1:], P[1:]), ll.T.reshape(*batch, T))
 
 
 class _SequenceStep:
@@ -264,141 +291,6 @@ class _SequenceStep:
         return P_next, mean_next
 
 
-def _masked_loop(F: Tensor, H: Tensor, Q: Tensor, R: Tensor, P0: Tensor, mean0: Tensor, y_tm: Tensor,
-                 off_tm: Tensor | None, w_all: Tensor | None, T: int, n: int, m: int, N: int) -> dict[str, Tensor]:
-    r"""The per-sequence covariance path of :func:`_filter_fast` for unbatched ``F, H, Q, R``,
-    ``m ≤ 2`` and no gradient, written for few tensor operations per step (about 19, each on
-    the whole batch, with views of the preallocated outputs made before the loop):
-
-    * one GEMM with a constant matrix maps :math:`\operatorname{vec}\Sigma^-_t` to
-      :math:`H\Sigma^-_t`, :math:`S_t = H\Sigma^-_tH^\top + R` and the adjugate of :math:`S_t`
-      (Eq. kf-update), so :math:`w_tS_t^{-1} = \operatorname{adj}(S_t)\,w_t/\det S_t`; the
-      log-determinants are one ``log`` over all steps after the loop;
-    * the Joseph form (Eq. kf-joseph) as :math:`M D M^\top` with :math:`M = [A\;K]`,
-      :math:`D = \operatorname{diag}(\Sigma^-_t, R)`, :math:`A = I - KH`, stored transposed so
-      every block is a contiguous slice of one buffer;
-    * the prediction (Eq. kf-predict) one GEMM with :math:`F\otimes F` into the next slot.
-
-    Returns the output buffers of :func:`_filter_fast` (batch last) with ``"_done"`` set."""
-    dt, dev = F.dtype, F.device
-    eye_n = torch.eye(n, dtype=dt, device=dev)
-    nn_, nm, mm_ = n * n, n * m, m * m
-    # rows: vec(H Σ) (m, n), vec(S) (m, m), vec(adj S) (m, m)
-    to_HP = torch.einsum("ka,jb->kjab", H, eye_n).reshape(nm, nn_)             # (HΣ)_{kj} = Σ_a H_ka Σ_aj
-    to_S = torch.einsum("ki,lj->klij", H, H).reshape(mm_, nn_)
-    if m == 2:
-        perm = torch.tensor([[0., 0, 0, 1], [0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0]], dtype=dt, device=dev)
-        to_adj, adj_bias = perm @ to_S, perm @ R.reshape(4)
-    else:
-        to_adj, adj_bias = torch.zeros(1, nn_, dtype=dt, device=dev), torch.ones(1, dtype=dt, device=dev)
-    lin = torch.cat([to_HP, to_S, to_adj]).contiguous()
-    lin_bias = torch.cat([torch.zeros(nm, dtype=dt, device=dev), R.reshape(mm_), adj_bias])[:, None].contiguous()
-    # vec(Kᵀ) (m, n) -> vec(Aᵀ) = vec(I − Hᵀ Kᵀ) and vec(R Kᵀ)
-    to_At = torch.einsum("ak,jl->ajkl", H.T, eye_n).reshape(nn_, nm)            # (HᵀKᵀ)_{aj} = Σ_k H_ka Kᵀ_kj
-    to_RKt = torch.einsum("lk,ij->likj", R, eye_n).reshape(nm, nm)               # (RKᵀ)_{lj} = Σ_k R_lk Kᵀ_kj
-    to_FPF = torch.einsum("ki,lj->klij", F, F).reshape(nn_, nn_)
-    eye_vec, Qv = eye_n.reshape(nn_, 1), Q.reshape(nn_, 1)
-
-    bufs = dict(P=torch.empty(T + 1, n, n, N, dtype=dt, device=dev), Pp=torch.empty(T, n, n, N, dtype=dt, device=dev),
-                M=torch.empty(T + 1, n, N, dtype=dt, device=dev), Mp=torch.empty(T, n, N, dtype=dt, device=dev),
-                Sinv=torch.empty(T, m, m, N, dtype=dt, device=dev), e=torch.empty(T, m, N, dtype=dt, device=dev))
-    det = torch.empty(T, N, dtype=dt, device=dev)
-    bufs["P"][0].copy_(P0.permute(1, 2, 0))
-    bufs["M"][0].copy_(mean0.T)
-    Pv = bufs["P"].view(T + 1, nn_, N).unbind(0)
-    P4 = bufs["P"].unbind(0)
-    Ppv = bufs["Pp"].view(T, nn_, N).unbind(0)
-    Pp4 = bufs["Pp"].unbind(0)
-    Ms, Mps, es = bufs["M"].unbind(0), bufs["Mp"].unbind(0), bufs["e"].unbind(0)
-    Sinvs, dets = bufs["Sinv"].view(T, mm_, N).unbind(0), det.unbind(0)
-    y_s = y_tm.permute(0, 2, 1).contiguous().unbind(0)                             # (m, N) each
-    u_s = None if off_tm is None else off_tm.permute(0, 2, 1).contiguous().unbind(0)
-    w_s = (torch.ones(T, N, dtype=dt, device=dev) if w_all is None else w_all.T.contiguous()).unbind(0)
-    MDt = torch.empty(n + m, n, N, dtype=dt, device=dev)      # [ (AΣ)ᵀ ; (KR)ᵀ ] = [ΣAᵀ ; RKᵀ]
-    Mt = torch.empty(n + m, n, N, dtype=dt, device=dev)       # [ Aᵀ ; Kᵀ ]
-    At_v, Kt = Mt[:n].view(nn_, N), Mt[n:]
-    PAt, RKt_v = MDt[:n], MDt[n:].view(nm, N)
-    Mt_b, MDt_b, At_b = Mt.unsqueeze(1), MDt.unsqueeze(2), Mt[:n].unsqueeze(0)
-    Kt_v = Kt.view(nm, N)
-    lin_out = torch.empty(nm + 2 * mm_, N, dtype=dt, device=dev)
-    HP = lin_out[:nm].view(1, m, n, N)
-    adj = lin_out[nm + mm_:]
-    scale = torch.empty(1, N, dtype=dt, device=dev)
-    tmp_k = torch.empty(m, m, n, N, dtype=dt, device=dev)
-    tmp_p = torch.empty(n, n, n, N, dtype=dt, device=dev)
-    tmp_j = torch.empty(n + m, n, n, N, dtype=dt, device=dev)
-    tmp_m = torch.empty(m, n, N, dtype=dt, device=dev)
-    gain = torch.empty(n, N, dtype=dt, device=dev)
-    steps = _scripted(_masked_steps)
-    u_list = list(u_s) if u_s is not None else []
-    steps(lin_bias, lin, list(Pv), list(P4), list(dets), lin_out, list(w_s), scale, adj, list(Sinvs), tmp_k, HP, Kt,
-          eye_vec, to_At, Kt_v, At_v, to_RKt, RKt_v, tmp_p, At_b, PAt, MDt_b, Mt_b, tmp_j, list(Pp4), list(y_s), H,
-          list(Ms), list(es), tmp_m, gain, list(Mps), Qv, to_FPF, list(Ppv), F, u_list, nm, m, N, T)
-    bufs["ld"] = det.log_()
-    bufs["_done"] = torch.ones(())
-    return bufs
-
-
-def _masked_steps(lin_bias: Tensor, lin: Tensor, Pv: list[Tensor], P4: list[Tensor], dets: list[Tensor],
-                  lin_out: Tensor, w_s: list[Tensor], scale: Tensor, adj: Tensor, Sinvs: list[Tensor], tmp_k: Tensor,
-                  HP: Tensor, Kt: Tensor, eye_vec: Tensor, to_At: Tensor, Kt_v: Tensor, At_v: Tensor, to_RKt: Tensor,
-                  RKt_v: Tensor, tmp_p: Tensor, At_b: Tensor, PAt: Tensor, MDt_b: Tensor, Mt_b: Tensor, tmp_j: Tensor,
-                  Pp4: list[Tensor], y_s: list[Tensor], H: Tensor, Ms: list[Tensor], es: list[Tensor], tmp_m: Tensor,
-                  gain: Tensor, Mps: list[Tensor], Qv: Tensor, to_FPF: Tensor, Ppv: list[Tensor], F: Tensor,
-                  u_s: list[Tensor], nm: int, m: int, N: int, T: int) -> None:
-    """The loop of :func:`_masked_loop` (see there; every argument a constant, a scratch buffer or
-    the list of per-step views of an output). Run compiled by TorchScript (:func:`_scripted`),
-    which removes most of the interpreter's cost per tensor operation; plain Python otherwise."""
-    mm_ = m * m
-    S_a = lin_out[nm]
-    S_b = lin_out[nm + 1]
-    S_d = lin_out[nm + mm_ - 1]
-    scale0 = scale[0]
-    for t in range(T):
-        torch.addmm(lin_bias, lin, Pv[t], out=lin_out)                                # HΣ, S, adj S
-        d_t = dets[t]
-        if m == 2:
-            torch.mul(S_a, S_d, out=d_t)
-            d_t.addcmul_(S_b, S_b, value=-1.0)
-        else:
-            d_t.copy_(S_a)
-        torch.div(w_s[t], d_t, out=scale0)
-        Sinv_t = torch.mul(adj, scale, out=Sinvs[t])                                   # w S⁻¹
-        torch.mul(Sinv_t.view([m, m, 1, N]), HP, out=tmp_k)
-        torch.sum(tmp_k, [1], out=Kt)                                                  # Kᵀ = w S⁻¹ H Σ
-        torch.addmm(eye_vec, to_At, Kt_v, alpha=-1.0, out=At_v)                        # Aᵀ = I − Hᵀ Kᵀ
-        torch.mm(to_RKt, Kt_v, out=RKt_v)                                              # R Kᵀ
-        torch.mul(P4[t].unsqueeze(2), At_b, out=tmp_p)
-        torch.sum(tmp_p, [1], out=PAt)                                                 # Σ Aᵀ
-        torch.mul(MDt_b, Mt_b, out=tmp_j)
-        torch.sum(tmp_j, [0], out=Pp4[t])                                              # A Σ Aᵀ + K R Kᵀ
-        e_t = torch.addmm(y_s[t], H, Ms[t], alpha=-1.0, out=es[t])                     # y − H μ⁻
-        torch.mul(Kt, e_t.unsqueeze(1), out=tmp_m)
-        torch.sum(tmp_m, [0], out=gain)
-        torch.add(Ms[t], gain, out=Mps[t])                                             # μ⁺ = μ⁻ + K e
-        torch.addmm(Qv, to_FPF, Ppv[t], out=Pv[t + 1])                                 # F Σ⁺ Fᵀ + Q
-        if len(u_s) == 0:
-            torch.mm(F, Mps[t], out=Ms[t + 1])
-        else:
-            torch.addmm(u_s[t], F, Mps[t], out=Ms[t + 1])
-
-
-def _rts_steps(Ms: list[Tensor], Cs: list[Tensor], Gs: list[Tensor], Ls: list[Tensor], mfs: list[Tensor],
-               mps: list[Tensor], d: Tensor, gd: Tensor, gC: Tensor, t3: Tensor, T: int) -> None:
-    """The backward loop of :func:`_rts_per_sequence` (Eq. rts) on per-step views, batch last:
-    μˢ_t = μ⁺_t + G_t(μˢ_{t+1} − μ⁻_{t+1}), Σˢ_t = L_t + G_t Σˢ_{t+1} G_tᵀ; compiled like
-    :func:`_masked_steps`."""
-    for t in range(T - 2, -1, -1):
-        g = Gs[t]
-        torch.sub(Ms[t + 1], mps[t], out=d)
-        torch.mul(g, d, out=gd)
-        torch.add(mfs[t], gd.sum(1), out=Ms[t])
-        torch.mul(g.unsqueeze(2), Cs[t + 1].unsqueeze(0), out=t3)
-        torch.sum(t3, [1], out=gC)                                                     # G Σˢ_{t+1}
-        torch.mul(gC.unsqueeze(1), g.unsqueeze(0), out=t3)
-        torch.add(Ls[t], t3.sum(2), out=Cs[t])
-
-
 _SCRIPTED: dict = {}
 
 
@@ -438,91 +330,27 @@ def _spd_inverse_soa(S: Tensor, w: Tensor | None) -> tuple[Tensor, Tensor]:
     return (inv if w is None else inv * w), logdet
 
 
-def _cholesky_soa(A: Tensor) -> Tensor:
-    """Lower Cholesky factors of batch-last SPD matrices ``A: (n, n, B)`` by the column
-    algorithm, elementwise over the contiguous batch axis (no LAPACK call per matrix)."""
-    n = A.shape[0]
-    L = torch.zeros_like(A)
-    for j in range(n):
-        d = (A[j, j] - L[j, :j].square().sum(0)).sqrt()
-        L[j, j] = d
-        if j + 1 < n:
-            L[j + 1:, j] = (A[j + 1:, j] - (L[j + 1:, :j] * L[j, :j].unsqueeze(0)).sum(1)) / d
-    return L
+def _rts_jit(post: Gaussian, nxt: Gaussian, F: Tensor, Q: Tensor) -> Gaussian:
+    """:func:`rts_smoother` for a covariance per sequence and unbatched ``F, Q`` without a
+    gradient, compiled (:func:`pgm_wm.kalman_jit.smoother_loop`, batch-last: the views that
+    :func:`_filter_jit` returns are read without a copy)."""
+    from .kalman_jit import smoother_loop
 
-
-def _cholesky_solve_soa(L: Tensor, Bm: Tensor) -> Tensor:
-    """``(L Lᵀ)⁻¹ B`` for batch-last ``L: (n, n, B)`` and ``B: (n, r, B)``, by forward and back
-    substitution elementwise over the batch axis."""
-    n = L.shape[0]
-    Z = torch.empty_like(Bm)
-    for i in range(n):
-        Z[i] = (Bm[i] - (L[i, :i].unsqueeze(1) * Z[:i]).sum(0)) / L[i, i]
-    X = torch.empty_like(Bm)
-    for i in range(n - 1, -1, -1):
-        X[i] = (Z[i] - (L[i + 1:, i].unsqueeze(1) * X[i + 1:]).sum(0)) / L[i, i]
-    return X
-
-
-_RTS_BLOCK = 8192      # matrices per block of the smoother's gains (sized for the cache: 32768 was slower)
-
-
-def _rts_per_sequence(post: Gaussian, nxt: Gaussian, F: Tensor, Q: Tensor) -> Gaussian:
-    """:func:`rts_smoother` for a covariance per sequence and unbatched ``F, Q``, without a
-    gradient: batch-last layout, gains and conditional covariances (Joseph form) for blocks of
-    steps at once (about 32k matrices per block), then 9 elementwise operations per step backwards."""
     T, n = post.mean.shape[-2], post.dim
     batch = post.batch_shape[:-1]
     N = math.prod(batch)
-    chunk = max(1, _RTS_BLOCK // N)
+    dt = F.dtype
 
-    def soa(x: Tensor, k: int) -> Tensor:        # (*batch, T, *event) -> (T, *event, N)
+    def soa(x: Tensor, k: int) -> np.ndarray:       # (*batch, T, *event) -> (T, *event, N)
         x = x.expand(*batch, T, *x.shape[x.ndim - k:]).reshape(N, T, *x.shape[x.ndim - k:])
-        return x.movedim(0, -1).contiguous()
+        return np.ascontiguousarray(_jit.as_array(x.movedim(0, -1)))
 
-    m_f, m_p, c_f, c_p = soa(post.mean, 1), soa(nxt.mean, 1), soa(post.cov, 2), soa(nxt.cov, 2)
-    eye = torch.eye(n, dtype=F.dtype, device=F.device)
-    to_GF = torch.einsum("ab,kj->ajbk", eye, F).reshape(n * n, n * n)     # vec(G) -> vec(G F)
-    G = torch.empty(T - 1, n, n, N, dtype=F.dtype, device=F.device)
-    Lc = torch.empty_like(G)
-    for s in range(0, T - 1, chunk):
-        e = min(s + chunk, T - 1)
-        k = e - s
-        Pf = c_f[s:e].movedim(0, -2).reshape(n, n, k * N)                  # Σ⁺_t
-        Pp = c_p[s:e].movedim(0, -2).reshape(n, n, k * N)                  # Σ⁻_{t+1}
-        FP = (F @ Pf.reshape(n, n * k * N)).view(n, n, k * N)                 # F Σ⁺
-        X = _cholesky_solve_soa(_cholesky_soa(Pp), FP)                     # (Σ⁻)⁻¹ F Σ⁺ = Gᵀ
-        Gs = X.transpose(0, 1)
-        A = (eye.reshape(n * n, 1) - to_GF @ Gs.reshape(n * n, k * N)).view(n, n, k * N)   # I − G F
-        GQ = _mm(Gs, Q.unsqueeze(-1))                                         # G Q
-        Ls = _mm_t(_mm(A, Pf), A) + _mm_t(GQ, Gs)
-        G[s:e] = Gs.reshape(n, n, k, N).movedim(2, 0)
-        Lc[s:e] = Ls.reshape(n, n, k, N).movedim(2, 0)
-    M = torch.empty(T, n, N, dtype=F.dtype, device=F.device)
-    C = torch.empty(T, n, n, N, dtype=F.dtype, device=F.device)
-    M[T - 1], C[T - 1] = m_f[T - 1], c_f[T - 1]
-    # views and scratch made once: the loop is 9 tensor operations per step, no allocation
-    Ms, Cs, Gs_, Ls_, mfs, mps = M.unbind(0), C.unbind(0), G.unbind(0), Lc.unbind(0), m_f.unbind(0), m_p.unbind(0)
-    d = torch.empty(n, N, dtype=F.dtype, device=F.device)
-    gd = torch.empty(n, n, N, dtype=F.dtype, device=F.device)
-    gC = torch.empty(n, n, N, dtype=F.dtype, device=F.device)
-    t3 = torch.empty(n, n, n, N, dtype=F.dtype, device=F.device)
-    _scripted(_rts_steps)(list(Ms), list(Cs), list(Gs_), list(Ls_), list(mfs), list(mps), d, gd, gC, t3, T)
-    _sym_soa_(C)
-    mean = M.movedim(-1, 0).reshape(*batch, T, n)
-    cov = C.movedim(-1, 0).reshape(*batch, T, n, n)
-    return Gaussian(mean, cov)
-
-
-def _sym_soa_(C: Tensor) -> None:
-    """Replace batch-last matrices ``C: (T, n, n, N)`` by their symmetric part ``(C + Cᵀ)/2`` in
-    place, one off-diagonal pair at a time (no full-size temporaries)."""
-    n = C.shape[1]
-    for i in range(n):
-        for j in range(i + 1, n):
-            avg = torch.add(C[:, i, j], C[:, j, i]).mul_(0.5)
-            C[:, i, j] = avg
-            C[:, j, i] = avg
+    M, C = torch.empty(T, n, N, dtype=dt), torch.empty(T, n, n, N, dtype=dt)
+    arr = lambda x: np.ascontiguousarray(_jit.as_array(x))  # noqa: E731
+    if not smoother_loop(soa(post.mean, 1), soa(post.cov, 2), soa(nxt.mean, 1), soa(nxt.cov, 2),
+                         arr(F), arr(Q), M.numpy(), C.numpy()):
+        raise ValueError("result: a predicted covariance is not positive definite (Q too small?)")
+    return Gaussian(M.permute(2, 0, 1).reshape(*batch, T, n), C.permute(3, 0, 1, 2).reshape(*batch, T, n, n))
 
 
 def _compact(x: Tensor, k: int) -> Tensor:

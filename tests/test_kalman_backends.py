@@ -220,20 +220,26 @@ def test_step_functions_check_values_and_dtypes() -> None:
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-@pytest.mark.parametrize("m", [1, 2])
-def test_masked_loops_uncompiled_equal_reference(monkeypatch, dtype, m) -> None:
-    """The per-sequence loops of the fast backend (filter and RTS backward pass) give the
-    reference's numbers when run as plain Python too (the fallback where TorchScript fails),
-    with observation variances far below the prior variance."""
-    import pgm_wm.kalman_fast as kf
+@pytest.mark.parametrize("m", [1, 2, 3])
+@pytest.mark.parametrize("jit", ["compiled", "tensor ops"])
+def test_per_sequence_paths_equal_reference(monkeypatch, dtype, m, jit) -> None:
+    """The per-sequence paths of the fast backend (a mask per sequence, shared parameters), filter
+    and RTS smoother, give the reference loops' numbers both compiled (numba, batch-last) and as
+    tensor operations (``PGM_WM_JIT=0``: the path for other devices), with a control input,
+    NaN at missing steps, a batch of two dimensions and observation variances far below the
+    prior variance; the smoothed covariances are exactly symmetric."""
+    from pgm_wm import _jit
 
-    monkeypatch.setattr(kf, "_SCRIPTED", {"_masked_steps": kf._masked_steps, "_rts_steps": kf._rts_steps})
-    n, N, T = 3, 5, 30
-    model, B = random_model(3, n, m, dtype, 1e-6, k=1)
+    if jit == "compiled" and _jit.numba is None:
+        pytest.skip("numba is not installed")
+    monkeypatch.setenv("PGM_WM_JIT", "1" if jit == "compiled" else "0")
+    n, T = 4, 30
+    model, B = random_model(3 + m, n, m, dtype, 1e-6, k=1)
     g = torch.Generator().manual_seed(4)
-    y = torch.randn(N, T, m, generator=g, dtype=torch.float64).to(dtype)
-    u = torch.randn(N, T, 1, generator=g, dtype=torch.float64).to(dtype)
-    mask = torch.rand(N, T, generator=g) > 0.3
+    y = torch.randn(2, 3, T, m, generator=g, dtype=torch.float64).to(dtype)
+    u = torch.randn(2, 3, T, 1, generator=g, dtype=torch.float64).to(dtype)
+    mask = torch.rand(2, 3, T, generator=g) > 0.3
+    y = torch.where(mask[..., None], y, torch.full_like(y, float("nan")))
     args = (y, model["init"], model["F"], model["H"], model["Q"], model["R"], mask, B, u)
     ref = kalman_filter_reference(*args)
     fast = kalman_filter(*args, backend="fast")
@@ -243,28 +249,20 @@ def test_masked_loops_uncompiled_equal_reference(monkeypatch, dtype, m) -> None:
     sm = rts_smoother(fast, model["F"], model["Q"])
     torch.testing.assert_close(sm.mean, sm_ref.mean, rtol=rtol, atol=atol)
     torch.testing.assert_close(sm.cov, sm_ref.cov, rtol=rtol, atol=atol)
-    assert set(kf._SCRIPTED.values()) == {kf._masked_steps, kf._rts_steps}
+    if jit == "compiled":
+        assert torch.equal(sm.cov, sm.cov.transpose(-1, -2))
+        assert torch.equal(fast.posterior.cov, fast.posterior.cov.transpose(-1, -2))
 
 
-@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_per_sequence_smoother_blocks_equal_reference(monkeypatch, dtype) -> None:
-    """The per-sequence RTS smoother computes its gains in blocks of steps (``_RTS_BLOCK``
-    matrices); with blocks of a few steps, a last partial block and a 4-d state it still gives
-    the reference loop's numbers, and its covariances are exactly symmetric."""
-    import pgm_wm.kalman_fast as kf
+def test_compiled_loops_serve_cpu_calls_only(monkeypatch) -> None:
+    """``_jit.enabled`` admits CPU float tensors only, and ``PGM_WM_JIT=0`` turns it off."""
+    from pgm_wm import _jit
 
-    monkeypatch.setattr(kf, "_RTS_BLOCK", 3 * 5)            # 3 steps of 5 sequences per block
-    n, N, T = 4, 5, 23
-    model, _ = random_model(5, n, 2, dtype)
-    g = torch.Generator().manual_seed(6)
-    y = torch.randn(N, T, 2, generator=g, dtype=torch.float64).to(dtype)
-    mask = torch.rand(N, T, generator=g) > 0.2
-    args = (y, model["init"], model["F"], model["H"], model["Q"], model["R"], mask)
-    ref = kalman_filter_reference(*args)
-    fast = kalman_filter(*args, backend="fast")
-    sm_ref = rts_smoother_reference(ref, model["F"], model["Q"])
-    sm = rts_smoother(fast, model["F"], model["Q"])
-    rtol, atol = TOLS[dtype]
-    torch.testing.assert_close(sm.mean, sm_ref.mean, rtol=rtol, atol=atol)
-    torch.testing.assert_close(sm.cov, sm_ref.cov, rtol=rtol, atol=atol)
-    assert torch.equal(sm.cov, sm.cov.transpose(-1, -2))
+    if _jit.numba is None:
+        pytest.skip("numba is not installed")
+    x = torch.zeros(2)
+    assert _jit.enabled(x, x.double())
+    assert not _jit.enabled(x.to(torch.bfloat16))
+    assert not _jit.enabled(torch.zeros(2, device="meta"))
+    monkeypatch.setenv("PGM_WM_JIT", "0")
+    assert not _jit.enabled(x)
