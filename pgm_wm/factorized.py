@@ -44,6 +44,8 @@ from ._checks import (check_finite, check_last_dims, check_mask, check_nonnegati
                       check_tensor)
 from .beliefs import DiagGaussian, FactorizedBelief
 from .filtering import FilterResult, filter_loop
+from . import _jit
+from .factorized_jit import diagonal_filter_jit
 from .kalman_fast import _scripted
 
 __all__ = [
@@ -439,18 +441,35 @@ def diagonal_factorized_filter(
     for b in batch:
         N *= b
     dt = w.dtype
-    # Packed state, batch flattened: z = [z^u, z^l] (N, 2m), s = [σ^u, σ^s, σ^l] (N, 3m); the
-    # predict (Eq. rkn-predict, diagonal blocks) is then two GEMMs with constant matrices.
-    seq = lambda x: x.expand(*batch, T, x.shape[-1]).reshape(N, T, x.shape[-1]).unbind(1)  # noqa: E731
-    ws, rs = seq(w), seq(w_var)
     z = prior.mean.expand(*batch, 2 * m).reshape(N, 2 * m)
     s = torch.cat([prior.var_upper, prior.cov_side, prior.var_lower], -1).expand(*batch, 3 * m).reshape(N, 3 * m)
-    At = A.T                                                       # z⁻ = z⁺ Aᵀ + input
+    # Eq. (rkn-predict) for diagonal blocks: coef[k, l] is the coefficient of s⁺_k in s⁻_l
+    # (s = [σ^u, σ^s, σ^l]), per lane
     coef = torch.stack([torch.stack([a11 * a11, a21 * a11, a21 * a21]),                        # from σ^u
                         torch.stack([2.0 * a11 * a12, a22 * a11 + a21 * a12, 2.0 * a21 * a22]),  # from σ^s
                         torch.stack([a12 * a12, a22 * a12, a22 * a22])])                         # from σ^l
-    Cs = torch.diag_embed(coef).permute(0, 2, 1, 3).reshape(3 * m, 3 * m)   # s⁻ = s⁺ Cs + bias
     q = torch.cat([trans_var[..., :m], torch.zeros_like(trans_var[..., :m]), trans_var[..., m:]], -1)
+    full = lambda x, k: x.expand(*batch, T, k).reshape(N, T, k)  # noqa: E731
+    if _jit.enabled(w, A):                         # compiled loop with its own backward pass
+        in_s_full = full(q, 3 * m) if inputs is None else full(
+            torch.cat([inputs.var_upper, inputs.cov_side, inputs.var_lower], -1) + q, 3 * m)
+        in_z_full = torch.zeros(N, T, 2 * m, dtype=dt, device=w.device) if inputs is None else full(inputs.mean, 2 * m)
+        mu = None if mask is None else full(mask.to(dt).unsqueeze(-1), m)
+        Z, S, Zp, Sp, z_last, s_last = diagonal_filter_jit(z, s, full(w, m), full(w_var, m), mu, in_z_full,
+                                                           in_s_full, A, coef)
+
+        def packed(Zt: Tensor, St: Tensor) -> FactorizedBelief:
+            Zt, St = Zt.view(*batch, T, 2 * m), St.view(*batch, T, 3 * m)
+            return FactorizedBelief(Zt, St[..., :m], St[..., 2 * m:], St[..., m:2 * m])
+
+        return FilterResult(packed(Z, S), packed(Zp, Sp),
+                            packed(torch.cat([Z[:, 1:], z_last[:, None]], 1), torch.cat([S[:, 1:], s_last[:, None]], 1)))
+    # Otherwise tensor operations on the packed state, batch flattened: z = [z^u, z^l] (N, 2m),
+    # s = [σ^u, σ^s, σ^l] (N, 3m); the predict is then two GEMMs with constant matrices.
+    seq = lambda x: full(x, x.shape[-1]).unbind(1)  # noqa: E731
+    ws, rs = seq(w), seq(w_var)
+    At = A.T                                                       # z⁻ = z⁺ Aᵀ + input
+    Cs = torch.diag_embed(coef).permute(0, 2, 1, 3).reshape(3 * m, 3 * m)   # s⁻ = s⁺ Cs + bias
     if inputs is None:
         in_z: list[Tensor | None] = [None]
         in_s: list[Tensor] = [q] * T
@@ -463,8 +482,8 @@ def diagonal_factorized_filter(
     else:
         mf = mask.to(dt).unsqueeze(-1)
         ms, unobs = list(seq(mf)), list(seq(1.0 - mf))
-    # compiled without a gradient (the interpreter's cost per operation dominates); with one,
-    # plain Python (TorchScript's differentiable graphs were not faster here)
+    # tensor operations otherwise: TorchScript without a gradient (the interpreter's cost per
+    # operation dominates); with one, plain Python
     leaves = (z, s, w, w_var, At, Cs, in_s[0]) + (() if in_z[0] is None else (in_z[0],))
     needs_grad = torch.is_grad_enabled() and any(x.requires_grad for x in leaves)
     steps = _diagonal_steps if needs_grad else _scripted(_diagonal_steps)

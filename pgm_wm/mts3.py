@@ -332,7 +332,8 @@ def run_fast_level(fast: AcRKN, observation: DiagGaussian, observed: Tensor, cau
         observation: encoded ``DiagGaussian(w, w_var)``, ``(B, K * H, m)``; observed: ``(B, K * H)`` bool.
         detach_fast: cut gradients of the fast belief at window boundaries.
         parallel_windows: with ``detach_fast`` and gradients enabled, first run all windows in
-            order **without** gradients to get each window's initial belief, then run all windows
+            order **without** gradients (one run over their steps) to get each window's initial
+            belief, then run all windows
             at once as a batch of ``B * K`` sequences of ``H`` steps. Values and gradients equal the
             sequential run (the initial beliefs are detached anyway) at a fraction of the cost:
             the recorded graph is ``H`` steps deep instead of ``K * H``.
@@ -355,10 +356,11 @@ def run_fast_level(fast: AcRKN, observation: DiagGaussian, observed: Tensor, cau
                            [c.map(lambda x: sl(x, k)) for c in causes])
     if detach_fast and parallel_windows and torch.is_grad_enabled() and K > 1:
         inits = [rkn.initial_belief((B,), observation.mean)]
-        with torch.no_grad():
-            for k in range(K - 1):
-                o, m, c = window_of(k)
-                inits.append(rkn.filter(o, mask=m, causes=c, init=inits[-1]).next_prior.at(-1))
+        with torch.no_grad():      # windows 1..K-1 in order = one run over their steps
+            head = lambda x: x[:, : (K - 1) * H]  # noqa: E731
+            run = rkn.filter(observation.map(head), mask=head(observed), causes=[c.map(head) for c in causes],
+                             init=inits[0])
+            inits += [run.next_prior.at(k * H - 1) for k in range(1, K)]
         flat = lambda x: x.reshape(B * K, H, *x.shape[2:])  # noqa: E731
         init = FactorizedBelief.stack(inits).map(lambda x: x.reshape(B * K, x.shape[-1]))
         out = rkn.filter(observation.map(flat), mask=flat(observed), causes=[c.map(flat) for c in causes], init=init)

@@ -198,10 +198,18 @@ def test_untrained_models_stay_finite_over_10000_missing_steps(name):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("masked", [True, False])
-def test_fast_path_gradients_equal_the_reference_loop(dtype, masked):
+@pytest.mark.parametrize("jit", ["compiled", "tensor ops"])
+def test_fast_path_gradients_equal_the_reference_loop(dtype, masked, jit, monkeypatch):
     """Training differentiates the fast path (MTS3's fast level): its gradients with respect to
     the prior, the observations, the transition, its noise and the inputs equal those of the
-    reference loop, with and without a mask, and uncompiled equals compiled without a gradient."""
+    reference loop, with and without a mask, both for the compiled loop with its hand-written
+    backward pass (numba) and for the tensor operations (``PGM_WM_JIT=0``), and so do the
+    values without a gradient."""
+    from pgm_wm import _jit
+
+    if jit == "compiled" and _jit.numba is None:
+        pytest.skip("numba is not installed")
+    monkeypatch.setenv("PGM_WM_JIT", "1" if jit == "compiled" else "0")
     prior, A, q, obs, mask, inputs = random_problem(3, dtype)
     mask = mask if masked else None
     leaves = [prior.mean, prior.var_upper, prior.var_lower, prior.cov_side, A, q, obs.mean, obs.var,
@@ -222,7 +230,9 @@ def test_fast_path_gradients_equal_the_reference_loop(dtype, masked):
     with torch.no_grad():
         fast = diagonal_factorized_filter(prior, A, q, obs, mask, inputs)
         ref = factorized_filter(prior, A, q, obs, mask, inputs)
-    tol = dict(rtol=2e-6, atol=1e-7) if dtype == torch.float32 else dict(rtol=1e-13, atol=1e-15)
+    # float32: the compiled loop rounds its float64 intermediates once per step, the tensor
+    # operations after every operation (a few ulp apart, more where sigma^l - (sigma^s)^2 g cancels)
+    tol = dict(rtol=2e-5, atol=1e-6) if dtype == torch.float32 else dict(rtol=1e-13, atol=1e-15)
     for name in ("prior", "posterior", "next_prior"):
         for x, y in zip(getattr(ref, name)._tensors(), getattr(fast, name)._tensors()):
             torch.testing.assert_close(y, x, **tol)
