@@ -80,6 +80,12 @@ def _filter_fast(
     shared = params_2d and (flat_mask is None or bool((flat_mask == flat_mask[:1]).all()))
     w_all = None if flat_mask is None else flat_mask.to(dt)
 
+    if all(x.ndim == 2 for x in (F, H, Q, R)) and not needs_grad and _jit.enabled(y, F) \
+            and (flat_mask is not None or not shared):
+        # a mask (per sequence, or shared: the Python loop over steps would cost more than the
+        # compiled loop's per-sequence arithmetic) or a batched initial belief: compiled loop
+        return _filter_jit(flat(y, 2), w_all, None if offsets is None else flat(offsets, 2),
+                           F, H, Q, R, flat(init.mean, 1), flat(init.cov, 2), batch)
     if shared:
         # One covariance sequence for the whole batch (Riccati recursion, Eqs. kf-update/kf-predict).
         w = None if w_all is None else w_all[0]
@@ -161,9 +167,6 @@ def _filter_fast(
             elif x.data_ptr() != bufs[name][t].data_ptr():
                 bufs[name][t].copy_(x)
 
-        if all(x.ndim == 2 for x in (F, H, Q, R)) and not needs_grad and _jit.enabled(y, F):
-            return _filter_jit(flat(y, 2), w_all, None if offsets is None else flat(offsets, 2),
-                               F, H, Q, R, flat(init.mean, 1), flat(init.cov, 2), batch)
         step = _SequenceStep(F, H, Q, R, n, m, N) if params_2d else None
         P, mean = flat(init.cov, 2), flat(init.mean, 1)
         if step is not None:
