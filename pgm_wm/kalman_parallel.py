@@ -53,7 +53,7 @@ from .filtering import FilterResult
 from .gaussian import _LOG_2PI, Gaussian, _sym
 from .kalman import _check_filter_inputs, _check_smoother_inputs, _smoother_gains
 
-__all__ = ["associative_scan", "parallel_kalman_filter", "parallel_rts_smoother"]
+__all__ = ["associative_scan", "parallel_kalman_filter", "parallel_rts_smoother", "scan_filter"]
 
 Elems = tuple[Tensor, ...]
 
@@ -134,6 +134,62 @@ def _smoother_op(a: Elems, b: Elems) -> Elems:
     return E_i @ E_j, _mv(E_i, g_j) + g_i, _sym(E_i @ L_j @ E_i.transpose(-1, -2)) + L_i
 
 
+def scan_filter(y: Tensor, w: Tensor, c: Tensor, m0: Tensor, P0: Tensor, F: Tensor, H: Tensor, Q: Tensor,
+                R: Tensor) -> tuple[Tensor, ...]:
+    r"""The filter of :func:`parallel_kalman_filter` on validated, time-major inputs, with noise
+    covariances that may change with time: ``y: (T, N, m)``, ``w: (T, N)`` 1 = observed,
+    ``c: (T, N, n)`` the known inputs of the predict after step ``t``, ``m0: (N, n)``,
+    ``P0: (N, n, n)``, ``F: (1, N, n, n)``, ``H: (1, N, m, n)``, ``Q: (T or 1, N, n, n)`` the
+    noise of the predict after step ``t``, ``R: (T or 1, N, m, m)`` that of observation ``t``.
+    Returns ``(m_prior, P_prior, m_post, P_post, m_next, P_next, ll)``, time-major, with
+    ``ll: (T, N)``. Used by :func:`pgm_wm.factorized.parallel_factorized_filter` too."""
+    T, N, m = y.shape
+    n = m0.shape[-1]
+    dt, dev = y.dtype, y.device
+    eye = torch.eye(n, dtype=dt, device=dev)
+    Q_prev = Q[:-1] if Q.shape[0] == T else Q          # noise entering step t = 2..T
+    R0, R_rest = R[0], (R[1:] if R.shape[0] == T else R)
+    F0, H0 = F[0], H[0]
+    # Step 1: the posterior of init given y_1 (Eqs. kf-update, kf-joseph).
+    S0 = H0 @ P0 @ H0.transpose(-1, -2) + R0
+    K0 = P0 @ H0.transpose(-1, -2) @ torch.linalg.inv(S0) * w[0, :, None, None]
+    A0 = eye - K0 @ H0
+    b1 = m0 + _mv(K0, y[0] - _mv(H0, m0))
+    C1 = _sym(A0 @ P0 @ A0.transpose(-1, -2) + K0 @ R0 @ K0.transpose(-1, -2))
+    # Steps 2..T: elements (A, b, C, η, J) from the update of N(F z + c, Q) with y_t.
+    S = H @ Q_prev @ H.transpose(-1, -2) + R_rest
+    HtSinv = torch.linalg.solve(S, H.expand(S.shape[0], N, m, n)).transpose(-1, -2) * w[1:, :, None, None]
+    K = Q_prev @ HtSinv                                                      # (T-1, N, n, m)
+    IKH = eye - K @ H
+    resid = y[1:] - _mv(H, c[:-1])
+    A = IKH @ F
+    b = c[:-1] + _mv(K, resid)
+    C = _sym(IKH @ Q_prev @ IKH.transpose(-1, -2) + K @ R_rest @ K.transpose(-1, -2))
+    FtHtSinv = F.transpose(-1, -2) @ HtSinv
+    eta = _mv(FtHtSinv, resid)
+    J = _sym(FtHtSinv @ H @ F)
+    zeros_nn = torch.zeros(1, N, n, n, dtype=dt, device=dev)
+    elems = (
+        torch.cat([zeros_nn, A.expand(T - 1, N, n, n)]), torch.cat([b1[None], b]), torch.cat([C1[None], C]),
+        torch.cat([torch.zeros(1, N, n, dtype=dt, device=dev), eta]), torch.cat([zeros_nn, J]),
+    )
+    _, m_post, P_post, _, _ = associative_scan(_filter_op, elems)           # (T, N, n), (T, N, n, n)
+
+    # Predictions and the exact log-likelihood for all steps at once (Eqs. kf-predict, kf-loglik).
+    m_next = _mv(F, m_post) + c
+    P_next = _sym(F @ P_post @ F.transpose(-1, -2)) + Q
+    m_prior = torch.cat([m0[None], m_next[:-1]])
+    P_prior = torch.cat([P0[None], P_next[:-1]])
+    S_all = _sym(H @ P_prior @ H.transpose(-1, -2)) + R
+    chol, _ = torch.linalg.cholesky_ex(S_all)
+    innov = y - _mv(H, m_prior)
+    sol = torch.linalg.solve_triangular(chol, innov.unsqueeze(-1), upper=False).squeeze(-1)
+    logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
+    ll = -0.5 * (sol.square().sum(-1) + logdet + m * _LOG_2PI)
+    ll = torch.where(w > 0, ll, torch.zeros((), dtype=dt))
+    return m_prior, P_prior, m_post, P_post, m_next, P_next, ll
+
+
 def parallel_kalman_filter(
     y: Tensor, init: Gaussian, F: Tensor, H: Tensor, Q: Tensor, R: Tensor,
     mask: Tensor | None = None, B: Tensor | None = None, u: Tensor | None = None,
@@ -146,7 +202,6 @@ def parallel_kalman_filter(
     T, m, n = y.shape[-2], y.shape[-1], init.dim
     N = math.prod(batch)
     dt, dev = y.dtype, y.device
-    eye = torch.eye(n, dtype=dt, device=dev)
 
     def tm(x: Tensor, k: int) -> Tensor:
         """(*batch, T, *event) -> (T, N, *event)."""
@@ -162,46 +217,9 @@ def parallel_kalman_filter(
     y_t = tm(y, 1)                                                           # (T, N, m)
     w = torch.ones(T, N, dtype=dt, device=dev) if mask is None else tm(mask, 0).to(dt)
     c = torch.zeros(T, N, n, dtype=dt, device=dev) if offsets is None else tm(offsets, 1)
-
-    # Step 1: the posterior of init given y_1 (Eqs. kf-update, kf-joseph).
-    m0, P0 = per(init.mean, 1), per(init.cov, 2)
-    S0 = Hb @ P0 @ Hb.transpose(-1, -2) + Rb
-    K0 = P0 @ Hb.transpose(-1, -2) @ torch.linalg.inv(S0) * w[0, :, None, None]
-    A0 = eye - K0 @ Hb
-    b1 = m0 + _mv(K0, y_t[0] - _mv(Hb, m0))
-    C1 = _sym(A0 @ P0 @ A0.transpose(-1, -2) + K0 @ Rb @ K0.transpose(-1, -2))
-    # Steps 2..T: elements (A, b, C, η, J) from the update of N(F z + c, Q) with y_t.
-    Fr, Hr, Qr, Rr = (x.unsqueeze(0) for x in (Fb, Hb, Qb, Rb))
-    S = Hr @ Qr @ Hr.transpose(-1, -2) + Rr
-    HtSinv = torch.linalg.solve(S, Hr).transpose(-1, -2) * w[1:, :, None, None]   # Hᵀ S⁻¹ (0 where missing)
-    K = Qr @ HtSinv                                                          # (T-1, N, n, m)
-    IKH = eye - K @ Hr
-    resid = y_t[1:] - _mv(Hr, c[:-1])
-    A = IKH @ Fr
-    b = c[:-1] + _mv(K, resid)
-    C = _sym(IKH @ Qr @ IKH.transpose(-1, -2) + K @ Rr @ K.transpose(-1, -2))
-    FtHtSinv = Fr.transpose(-1, -2) @ HtSinv
-    eta = _mv(FtHtSinv, resid)
-    J = _sym(FtHtSinv @ Hr @ Fr)
-    zeros_nn = torch.zeros(1, N, n, n, dtype=dt, device=dev)
-    elems = (
-        torch.cat([zeros_nn, A]), torch.cat([b1[None], b]), torch.cat([C1[None], C]),
-        torch.cat([torch.zeros(1, N, n, dtype=dt, device=dev), eta]), torch.cat([zeros_nn, J]),
-    )
-    _, m_post, P_post, _, _ = associative_scan(_filter_op, elems)           # (T, N, n), (T, N, n, n)
-
-    # Predictions and the exact log-likelihood for all steps at once (Eqs. kf-predict, kf-loglik).
-    m_next = _mv(Fr, m_post) + c
-    P_next = _sym(Fr @ P_post @ Fr.transpose(-1, -2)) + Qr
-    m_prior = torch.cat([m0[None], m_next[:-1]])
-    P_prior = torch.cat([P0[None], P_next[:-1]])
-    S_all = _sym(Hr @ P_prior @ Hr.transpose(-1, -2)) + Rr
-    chol, _ = torch.linalg.cholesky_ex(S_all)
-    innov = y_t - _mv(Hr, m_prior)
-    sol = torch.linalg.solve_triangular(chol, innov.unsqueeze(-1), upper=False).squeeze(-1)
-    logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
-    ll = -0.5 * (sol.square().sum(-1) + logdet + m * _LOG_2PI)
-    ll = torch.where(w > 0, ll, torch.zeros((), dtype=dt)).T.reshape(*batch, T)
+    m_prior, P_prior, m_post, P_post, m_next, P_next, ll = scan_filter(
+        y_t, w, c, per(init.mean, 1), per(init.cov, 2), *(x.unsqueeze(0) for x in (Fb, Hb, Qb, Rb)))
+    ll = ll.T.reshape(*batch, T)
 
     def belief(mean: Tensor, cov: Tensor) -> Gaussian:
         return Gaussian(mean.transpose(0, 1).reshape(*batch, T, n), cov.transpose(0, 1).reshape(*batch, T, n, n))

@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from pgm_wm.beliefs import DiagGaussian, FactorizedBelief
-from pgm_wm.factorized import diagonal_factorized_filter, factorized_filter
+from pgm_wm.factorized import diagonal_factorized_filter, factorized_filter, parallel_factorized_filter
 from pgm_wm.filtering import FilterResult, filter_loop
 
-FILTERS = [factorized_filter, diagonal_factorized_filter]
+FILTERS = [factorized_filter, diagonal_factorized_filter, parallel_factorized_filter]
 
 
 def random_problem(seed: int, dtype: torch.dtype, B: int = 3, T: int = 7, m: int = 2, obs_var: float | None = None):
@@ -106,14 +106,18 @@ def test_tiny_observation_variance_keeps_full_relative_precision(fn, dtype):
 
 
 def test_masked_steps_leave_the_prior_and_next_prior_is_the_shifted_prior():
+    """Exactly for the loops; to rounding for the scan, whose posteriors are prefix products
+    and whose priors are predictions from them."""
     prior, A, q, obs, mask, inputs = random_problem(2, torch.float64)
     mask[:, 3] = False
     for fn in FILTERS:
         res = fn(prior, A, q, obs, mask, inputs)
+        same = torch.equal if fn is not parallel_factorized_filter else \
+            (lambda x, y: bool(torch.allclose(x, y, rtol=1e-12, atol=1e-14)))
         for x, y in zip(res.prior.at(3)._tensors(), res.posterior.at(3)._tensors()):
-            assert torch.equal(x, y)
+            assert same(x, y)
         for x, y in zip(res.next_prior._tensors(), res.prior._tensors()):
-            assert torch.equal(x[:, :-1], y[:, 1:])
+            assert same(x[:, :-1], y[:, 1:])
 
 
 def test_filter_loop_calls_update_then_predict_in_order():
@@ -215,7 +219,7 @@ def test_fast_path_gradients_equal_the_reference_loop(dtype, masked, jit, monkey
     leaves = [prior.mean, prior.var_upper, prior.var_lower, prior.cov_side, A, q, obs.mean, obs.var,
               inputs.mean, inputs.var_upper, inputs.var_lower, inputs.cov_side]
     grads = []
-    for fn in FILTERS:
+    for fn in (factorized_filter, diagonal_factorized_filter):
         xs = [x.detach().clone().requires_grad_(True) for x in leaves]
         p, o = FactorizedBelief(*xs[:4]), DiagGaussian(xs[6], xs[7])
         res = fn(p, xs[4], xs[5], o, mask, FactorizedBelief(*xs[8:]))
@@ -236,3 +240,39 @@ def test_fast_path_gradients_equal_the_reference_loop(dtype, masked, jit, monkey
     for name in ("prior", "posterior", "next_prior"):
         for x, y in zip(getattr(ref, name)._tensors(), getattr(fast, name)._tensors()):
             torch.testing.assert_close(y, x, **tol)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("masked", [True, False])
+@pytest.mark.parametrize("T", [7, 8, 1])
+def test_parallel_factorized_filter_equals_the_reference_loop(dtype, masked, T):
+    """The associative scan over lanes gives the reference loop's beliefs (to 1e-10 in float64)
+    and its gradients with respect to the prior, the observations, the noise, the inputs and the
+    block diagonals of A (the entries a transition with diagonal blocks has), for odd and even
+    lengths, one step, and a batch of two dimensions."""
+    prior, A, q, obs, mask, inputs = random_problem(5, dtype, B=4, T=T)
+    split = lambda x: x.reshape(2, 2, *x.shape[1:])  # noqa: E731  batch (4,) -> (2, 2)
+    prior, obs, inputs, mask = prior.map(split), obs.map(split), inputs.map(split), split(mask)
+    mask = mask if masked else None
+    leaves = [prior.mean, prior.var_upper, prior.var_lower, prior.cov_side, A, q, obs.mean, obs.var,
+              inputs.mean, inputs.var_upper, inputs.var_lower, inputs.cov_side]
+    outs, grads = [], []
+    for fn in (factorized_filter, parallel_factorized_filter):
+        xs = [x.detach().clone().requires_grad_(True) for x in leaves]
+        res = fn(FactorizedBelief(*xs[:4]), xs[4], xs[5], DiagGaussian(xs[6], xs[7]), mask, FactorizedBelief(*xs[8:]))
+        loss = sum((getattr(res, f).mean.square().sum() + getattr(res, f).var_upper.sum()
+                    + getattr(res, f).var_lower.sum() + getattr(res, f).cov_side.sum())
+                   for f in ("prior", "posterior", "next_prior"))
+        outs.append(res)
+        grads.append(list(torch.autograd.grad(loss, xs)))
+    m = prior.latent_obs_dim
+    block_diagonals = torch.eye(m, dtype=torch.bool).repeat(2, 2)
+    for g in grads:
+        g[4] = g[4][block_diagonals]
+    tol = dict(rtol=1e-10, atol=1e-12) if dtype == torch.float64 else dict(rtol=2e-4, atol=2e-5)
+    for name in ("prior", "posterior", "next_prior"):
+        for x, y in zip(getattr(outs[0], name)._tensors(), getattr(outs[1], name)._tensors()):
+            assert x.shape == y.shape
+            torch.testing.assert_close(y, x, **tol)
+    for a, b in zip(*grads):
+        torch.testing.assert_close(b, a, **tol)
