@@ -78,7 +78,7 @@ from ._checks import check_last_dims
 from .acrkn import AcRKN, MLPControl, check_sequences
 from .aggregation import BayesianContextEncoder, SetEncoder, set_update
 from .beliefs import DiagGaussian, FactorizedBelief
-from .factorized import _observation, factorized_predict, linear_cause
+from .factorized import _observation, diagonal_factorized_filter, factorized_predict, linear_cause
 from .filtering import FilterResult
 from .rkn import BeliefDecoder, BlockMatrix, LocallyLinearTransition, ObservationEncoder, zero_missing
 from .datasets.windows import pad_to_windows, to_windows
@@ -259,6 +259,13 @@ class TaskSSM(nn.Module):
     def use_actions(self) -> bool:
         return self.action_encoder is not None
 
+    @property
+    def filters_as_one_run(self) -> bool:
+        """True if all windows of this level can be filtered by one run of
+        :func:`pgm_wm.factorized.diagonal_factorized_filter` (:func:`slow_level_filter`): not
+        conditioned on a level above, :math:`X` constant with diagonal blocks."""
+        return self.above_matrix is None and self.transition.constant and self.transition.diagonal_blocks
+
     def initial_belief(self, batch_shape: Sequence[int], like: Tensor) -> FactorizedBelief:
         """:math:`\\mathcal N(0, \\text{init\\_var}\\, I)` with zero side covariance."""
         return FactorizedBelief.isotropic(batch_shape, self.latent_obs_dim, self.init_var,
@@ -310,6 +317,46 @@ class TaskSSM(nn.Module):
         ``update(prior, beta, beta_var, mask)`` is accepted too)."""
         obs, mask = _observation("observation", observation, args, mask)
         return set_update(prior, obs, mask, validate=False)
+
+
+def slow_level_filter(level: TaskSSM, beta: DiagGaussian, alpha: DiagGaussian | None, observed: Tensor,
+                      init: FactorizedBelief) -> tuple[FactorizedBelief, FactorizedBelief]:
+    r"""All windows of an unconditioned task level at once: the priors and posteriors
+    :math:`p(l_k\mid\beta_{<k}, \alpha_{\le k})`, :math:`p(l_k\mid\beta_{\le k}, \alpha_{\le k})`
+    (``(B, K, 2m)`` each) from ``beta: (B, K, H, m)``, ``observed: (B, K, H)``, the abstract
+    actions ``alpha: (B, K, 2m)`` (or ``None``) and the initial belief ``init``.
+
+    The set update of a window, Eq. (mts3-task-update), only adds the summed precision
+    :math:`\lambda_k = \sum_t m_{k,t}\,\nu_{k,t}^{\ominus}` to the upper precision block and
+    :math:`\sum_t m_{k,t}\,\beta_{k,t}\oslash\nu_{k,t}` to the information, so it equals **one**
+    factorized update (Eq. rkn-update) with the observation
+    :math:`\bar\beta_k = \lambda_k^{\ominus}\odot\sum_t m_{k,t}\,\beta_{k,t}\oslash\nu_{k,t}` of
+    variance :math:`\lambda_k^{\ominus}` (a window without observations is a missing step). The
+    task predict, Eq. (mts3-task-predict), is the factorized predict with :math:`X, S` and the
+    abstract action's cause :math:`Y\alpha_{k+1}` known before the loop. So the level is the
+    factorized filter of Chapter 3 over windows, started at the first prior
+    :math:`p(l_1\mid\alpha_1)`; with diagonal blocks of :math:`X` it runs compiled
+    (:func:`pgm_wm.factorized.diagonal_factorized_filter`). Tested equal to the window loop of
+    :meth:`MTS3.run_task_levels` (values and gradients).
+    """
+    if not level.filters_as_one_run:
+        raise ValueError("level: needs an unconditioned level with a constant X with diagonal blocks")
+    prec = torch.where(observed.unsqueeze(-1), beta.var, torch.ones_like(beta.var)).reciprocal() \
+        * observed.unsqueeze(-1).to(beta.var.dtype)
+    lam = prec.sum(-2)                                                              # (B, K, m)
+    info = (prec * torch.where(observed.unsqueeze(-1), beta.mean, torch.zeros_like(beta.mean))).sum(-2)
+    present = observed.any(-1)                                                      # (B, K)
+    lam_safe = torch.where(present.unsqueeze(-1), lam, torch.ones_like(lam))
+    summary = DiagGaussian(info / lam_safe, lam_safe.reciprocal())
+    first = level.predict(init, None if alpha is None else alpha.map(lambda x: x[:, 0]))
+    inputs = None
+    if alpha is not None:                      # the cause of window k + 1, known before the loop
+        cause = linear_cause(level.action_matrix.dense(), alpha)
+        inputs = FactorizedBelief.cat([cause.map(lambda x: x[:, 1:]), cause.map(lambda x: torch.zeros_like(x[:, :1]))])
+    tr = level.transition
+    run = diagonal_factorized_filter(first, tr.dense_matrix(init.mean), tr.trans_var, summary, present, inputs,
+                                     validate=False)
+    return run.prior, run.posterior
 
 
 # ----------------------------------------------------------------------------- the fast level
@@ -529,6 +576,9 @@ class MTS3(nn.Module):
                  for lev in levels]
         observed = [to_windows(p.observed, lev.window) for lev in levels]
         post = [lev.initial_belief((B,), p.obs) for lev in levels]
+        if len(levels) == 1 and levels[0].filters_as_one_run:
+            prior_k, post_k = slow_level_filter(levels[0], beta[0], alpha[0], observed[0], post[0])
+            return [prior_k], [post_k], alpha
         prior: list[FactorizedBelief | None] = [None] * len(levels)
         priors: list[list[FactorizedBelief]] = [[] for _ in levels]
         posts: list[list[FactorizedBelief]] = [[] for _ in levels]

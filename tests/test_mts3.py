@@ -515,3 +515,35 @@ def test_band_blocks_general_path_parallel_equals_sequential_and_is_causal():
     close(m1[:, :6], m2[:, :6])
 
 
+
+
+@pytest.mark.parametrize("use_actions", [True, False])
+def test_slow_level_as_one_filter_run_equals_the_window_loop(monkeypatch, use_actions):
+    """The slow level filtered by one run of the diagonal factorized filter (each window's set
+    update as one update with the summed precision, ``slow_level_filter``) gives the window loop's
+    task beliefs, predictions and gradients: with a window without any observation, a partial
+    last window (padding) and without abstract actions."""
+    from pgm_wm.mts3 import TaskSSM
+
+    torch.manual_seed(3)
+    a = perturb(build_mts3(DO, DA, M, 4, hidden=(8,), use_actions=use_actions).to(DT))
+    b = copy.deepcopy(a)
+    obs, act, mask = data(3, 15)
+    mask[1, 4:8] = False                                     # window 2 of sequence 1: no observation
+    assert a.slow.filters_as_one_run
+    out_a = a.run(obs, act, mask)
+    loss_a = prediction_loss(a, obs, act, mask)
+    monkeypatch.setattr(TaskSSM, "filters_as_one_run", property(lambda self: False))
+    out_b = b.run(obs, act, mask)
+    loss_b = prediction_loss(b, obs, act, mask)
+    close(out_a.mean, out_b.mean)
+    close(out_a.var, out_b.var)
+    for got, want in ((out_a.task_prior, out_b.task_prior), (out_a.task_posterior, out_b.task_posterior)):
+        for x, y in zip(got._tensors(), want._tensors()):
+            close(x, y)
+    loss_a.backward()
+    loss_b.backward()
+    for (name, pa), pb in zip(a.named_parameters(), b.parameters()):
+        assert (pa.grad is None) == (pb.grad is None), name
+        if pa.grad is not None:
+            close(pa.grad, pb.grad, 1e-9)
