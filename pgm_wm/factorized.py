@@ -483,10 +483,12 @@ def diagonal_factorized_filter(
     likewise for :math:`\sigma^{l-}, \sigma^{s-}`, plus ``inputs.at(t)``.
     ``validate`` also checks that the blocks of ``A`` are diagonal.
 
-    The state is packed (``z = [z^u, z^l]``, ``s = [σ^u, σ^s, σ^l]``, batch flattened) so the
-    predict is two GEMMs with constant matrices (:math:`A^\top` and the coefficients above) and a
-    step is about 12 tensor operations (:func:`_diagonal_steps`, compiled by TorchScript when no
-    gradient is recorded); values and gradients are tested equal to :func:`factorized_filter`.
+    For CPU tensors the loop runs compiled, lane by lane, with a hand-written backward pass
+    (:mod:`pgm_wm.factorized_jit`); elsewhere (or with ``PGM_WM_JIT=0``) as tensor operations
+    on the packed state (``z = [z^u, z^l]``, ``s = [σ^u, σ^s, σ^l]``, batch flattened), about
+    12 per step (:func:`_diagonal_steps`). Both are tested equal to :func:`factorized_filter`,
+    values and gradients, in float32 and float64; :func:`parallel_factorized_filter` is the
+    same filter by associative scan.
     """
     d = _diagonal_problem(prior, A, trans_var, observation, mask, inputs, validate)
     N, T, m, z, s = d.N, d.T, d.m, d.z0, d.s0

@@ -29,9 +29,10 @@ observed values. When the parameters are unbatched and every sequence has the sa
 none), one covariance sequence serves the whole batch, and without a mask and a gradient the
 recursion stops once the prior covariance repeats bit for bit (the steady state). The means are
 then a linear recursion :math:`\mu^-_{t+1} = F(I - K_tH)\mu^-_t + FK_ty_t + Bu_t`: one small GEMM
-per step, the posteriors and log-likelihoods for all steps at once afterwards. With a mask per
-sequence the covariances are carried per sequence, with the small innovation matrices inverted
-by closed formulas on the whole batch (``m ≤ 2``) and outputs written into preallocated tensors.
+per step, the posteriors and log-likelihoods for all steps at once afterwards. With missing
+steps every sequence carries its own covariances: on the CPU without a gradient the loop and the
+smoother's backward loop run compiled (:mod:`pgm_wm.kalman_jit`), otherwise as batched tensor
+operations with the small innovation matrices inverted by closed formulas (``m ≤ 2``).
 """
 
 from __future__ import annotations

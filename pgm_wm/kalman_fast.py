@@ -7,10 +7,13 @@ with fewer tensor operations per step.
   a mask and a gradient it stops at its bitwise steady state. The means are then the linear
   recursion :math:`\mu^-_{t+1} = F(I - K_tH)\mu^-_t + FK_ty_t + Bu_t`, one small GEMM per step,
   and posteriors and log-likelihoods (Eq. kf-loglik) follow for all steps at once.
-* A covariance per sequence: batch-last storage ("structure of arrays"), every map linear in
-  the covariance one GEMM with a constant matrix, closed-form 2×2 inverses, preallocated outputs.
-* The smoother with a covariance per sequence: gains and Joseph-form conditional covariances for
-  blocks of steps at once by an elementwise Cholesky, then nine elementwise operations per step.
+* A mask (per sequence or shared) or a batched initial belief, unbatched ``F, H, Q, R``, no
+  gradient, CPU: the compiled loops of :mod:`pgm_wm.kalman_jit` (numba; all sequences advance
+  together, batch-last), for the filter and for the RTS smoother.
+* Otherwise a covariance per sequence as tensor operations: batch-last storage ("structure of
+  arrays"), every map linear in the covariance one GEMM with a constant matrix, closed-form 2×2
+  inverses, preallocated outputs (the path with a gradient, on other devices, or with
+  ``PGM_WM_JIT=0``).
 """
 
 from __future__ import annotations
@@ -243,7 +246,8 @@ def _filter_jit(y: Tensor, w: Tensor | None, offsets: Tensor | None, F: Tensor, 
                 M.numpy(), P.numpy(), Mp.numpy(), Pp.numpy(), ll.numpy())
 
     def belief(mean: Tensor, cov: Tensor) -> Gaussian:       # (T, n, N), (T, n, n, N) -> batch first
-        return Gaussian(mean.permute(2, 0, 1).reshape(*batch, T, n), cov.permute(3, 0, 1, 2).reshape(*batch, T, n, n))
+        return Gaussian(mean.permute(2, 0, 1).reshape(*batch, T, n),
+                        cov.permute(3, 0, 1, 2).reshape(*batch, T, n, n))
 
     return FilterResult(belief(M[:T], P[:T]), belief(Mp, Pp), belief(M[1:], P[1:]), ll.T.reshape(*batch, T))
 

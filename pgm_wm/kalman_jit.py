@@ -19,7 +19,8 @@ the book's equations on one sequence's small matrices:
 
 Every array is stored batch-last (``(T, n, n, N)``: each matrix entry a contiguous vector over
 the ``N`` sequences), and every loop over the batch is innermost, so the compiler turns it into
-vector instructions: all sequences advance one step together. Tested equal to :func:`pgm_wm.kalman.kalman_filter_reference` and
+vector instructions: all sequences advance one step together. Tested equal to
+:func:`pgm_wm.kalman.kalman_filter_reference` and
 :func:`pgm_wm.kalman.rts_smoother_reference` in float32 and float64.
 """
 
@@ -110,14 +111,14 @@ def filter_loop(y, w, off, F, H, Q, R, M, P, Mp, Pp, ll):
                         acc[b] += Pt[i, j, b] * h
                 PHt[i, k] = acc
         for k in range(m):                               # S = H Σ⁻ Hᵀ + R
-            for l in range(m):
+            for k2 in range(m):
                 for b in range(N):
-                    acc[b] = R[k, l]
+                    acc[b] = R[k, k2]
                 for j in range(n):
                     h = H[k, j]
                     for b in range(N):
-                        acc[b] += h * PHt[j, l, b]
-                S[k, l] = acc
+                        acc[b] += h * PHt[j, k2, b]
+                S[k, k2] = acc
         for k in range(m):                               # e = y − H μ⁻ (0 where missing)
             for b in range(N):
                 acc[b] = y[t, k, b]
@@ -165,14 +166,14 @@ def filter_loop(y, w, off, F, H, Q, R, M, P, Mp, Pp, ll):
                     for b in range(N):
                         acc[b] -= Kt[k, i, b] * h
                 A[i, j] = acc
-            for l in range(m):
+            for k2 in range(m):
                 for b in range(N):
                     acc[b] = 0.0
                 for k in range(m):
-                    r = R[k, l]
+                    r = R[k, k2]
                     for b in range(N):
                         acc[b] += Kt[k, i, b] * r
-                KR[i, l] = acc
+                KR[i, k2] = acc
         for i in range(n):                               # A Σ⁻
             for j in range(n):
                 for b in range(N):
@@ -188,9 +189,9 @@ def filter_loop(y, w, off, F, H, Q, R, M, P, Mp, Pp, ll):
                 for p in range(n):
                     for b in range(N):
                         acc[b] += AP[i, p, b] * A[j, p, b]
-                for l in range(m):
+                for k2 in range(m):
                     for b in range(N):
-                        acc[b] += KR[i, l, b] * Kt[l, j, b]
+                        acc[b] += KR[i, k2, b] * Kt[k2, j, b]
                 Pu[i, j] = acc
                 Pu[j, i] = acc
         for i in range(n):                               # μ⁻_{t+1} = F μ⁺ + B u

@@ -149,7 +149,7 @@ def scan_filter(y: Tensor, w: Tensor, c: Tensor, m0: Tensor, P0: Tensor, F: Tens
     eye = torch.eye(n, dtype=dt, device=dev)
     Q_prev = Q[:-1] if Q.shape[0] == T else Q          # noise entering step t = 2..T
     R0, R_rest = R[0], (R[1:] if R.shape[0] == T else R)
-    F0, H0 = F[0], H[0]
+    H0 = H[0]
     # Step 1: the posterior of init given y_1 (Eqs. kf-update, kf-joseph).
     S0 = H0 @ P0 @ H0.transpose(-1, -2) + R0
     K0 = P0 @ H0.transpose(-1, -2) @ torch.linalg.inv(S0) * w[0, :, None, None]
@@ -199,7 +199,7 @@ def parallel_kalman_filter(
     signature, checks and result as :func:`pgm_wm.kalman.kalman_filter` (exact, not an
     approximation: tested equal to the sequential filter to 1e-10 in float64)."""
     y, mask, offsets, batch = _check_filter_inputs(y, init, F, H, Q, R, mask, B, u, validate)
-    T, m, n = y.shape[-2], y.shape[-1], init.dim
+    T, n = y.shape[-2], init.dim
     N = math.prod(batch)
     dt, dev = y.dtype, y.device
 
