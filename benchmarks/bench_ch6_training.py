@@ -10,9 +10,10 @@ blocks of ``--steps`` optimizer steps of the process CPU time per step, turned i
 second (48 / CPU s per step), after ``--warmup`` untimed steps.
 
 ``--label before|after`` stores the run under that key in
-``benchmarks/results/ch6_training_throughput.json`` (other keys are kept), with the commit, the
-machine and the load average. Run from the repository root:
-``PYTHONPATH=$PWD OMP_NUM_THREADS=1 python benchmarks/bench_ch6_training.py --label after``.
+``benchmarks/results/ch6_training_throughput.json`` (other keys are kept), with the commit of the
+imported ``pgm_wm``, the machine and the load average. Run from the repository root:
+``PYTHONPATH=$PWD OMP_NUM_THREADS=1 python benchmarks/bench_ch6_training.py --label after``; for
+``before``, point ``PYTHONPATH`` at a checkout of the older commit (``git worktree add``).
 """
 
 from __future__ import annotations
@@ -39,11 +40,15 @@ BATCH, CROP, M_LAT, HID, MASK_WINDOW = 48, 100, 8, (32,), 25
 
 
 def commit() -> str:
+    """The commit of the ``pgm_wm`` that is imported (the code being timed; ``PYTHONPATH`` may
+    point at another checkout than this script's), ``+dirty`` with uncommitted tracked changes."""
+    import pgm_wm
+
+    where = Path(pgm_wm.__file__).resolve().parent
     try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True,
-                             cwd=Path(__file__).resolve().parent)
+        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True, cwd=where)
         dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
-                               text=True, cwd=Path(__file__).resolve().parent).stdout.strip()
+                               text=True, cwd=where).stdout.strip()
         return out.stdout.strip() + ("+dirty" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
