@@ -79,7 +79,7 @@ from torch import Tensor, nn
 
 from ._checks import check_last_dims
 from .acrkn import AcRKN, MLPControl, check_sequences
-from .aggregation import BayesianContextEncoder, SetEncoder, set_update
+from .aggregation import BayesianContextEncoder, SetEncoder, _precision_sums, set_update
 from .beliefs import DiagGaussian, FactorizedBelief
 from .factorized import _observation, diagonal_factorized_filter, factorized_predict, linear_cause
 from .filtering import FilterResult
@@ -344,10 +344,9 @@ def slow_level_filter(level: TaskSSM, beta: DiagGaussian, alpha: DiagGaussian | 
     """
     if not level.filters_as_one_run:
         raise ValueError("level: needs an unconditioned level with a constant X with diagonal blocks")
-    prec = torch.where(observed.unsqueeze(-1), beta.var, torch.ones_like(beta.var)).reciprocal() \
-        * observed.unsqueeze(-1).to(beta.var.dtype)
-    lam = prec.sum(-2)                                                              # (B, K, m)
-    info = (prec * torch.where(observed.unsqueeze(-1), beta.mean, torch.zeros_like(beta.mean))).sum(-2)
+    # the set's two sufficient statistics (Chapter 2), centred at 0: λ_k and Σ_t m β / ν
+    zero_center = beta.mean.new_zeros(beta.mean.shape[:-2] + beta.mean.shape[-1:])          # (B, K, m)
+    lam, info = _precision_sums(beta.mean, beta.var, observed, zero_center)
     present = observed.any(-1)                                                      # (B, K)
     lam_safe = torch.where(present.unsqueeze(-1), lam, torch.ones_like(lam))
     summary = DiagGaussian(info / lam_safe, lam_safe.reciprocal())
