@@ -51,7 +51,7 @@ from ._checks import (check_finite, check_input_dtype, check_last_dims, check_ma
 from .beliefs import FactorizedBelief
 from .factorized import factorized_predict_from_matrix
 from .filtering import FilterResult
-from .rkn import RKN, Cause, LocallyLinearTransition, mlp
+from .rkn import RKN, BandParameters, Cause, LocallyLinearTransition, mlp
 
 __all__ = [
     "check_sequences",
@@ -218,6 +218,15 @@ class NormBoundedTransition(nn.Module):
             M = M + torch.eye(M.shape[-1], dtype=M.dtype, device=M.device)
         norms = torch.linalg.matrix_norm(M, ord=2)
         return M / torch.clamp(norms / self.max_norm, min=1.0)[:, None, None]
+
+    def band_parameters(self) -> BandParameters:
+        """The bounded transition in the band storage of the compiled filter: the rescaled
+        :math:`\tilde M_k` (identity included) at the band pairs, nothing added."""
+        base = self.base.band_parameters()
+        M, m = self.scaled_basis(), self.latent_obs_dim
+        ii, jj = torch.as_tensor(base.bi), torch.as_tensor(base.bj)
+        basis = torch.stack([M[:, ii, jj], M[:, ii, m + jj], M[:, m + ii, jj], M[:, m + ii, m + jj]])
+        return BandParameters(basis, torch.zeros_like(base.ident), base.bi, base.bj, base.weight, base.bias)
 
     def dense_matrix(self, mean: Tensor) -> Tensor:
         r""":math:`A_t = \sum_k \alpha_k(z)\tilde M_k`: ``(..., 2m, 2m)``."""

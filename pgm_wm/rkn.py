@@ -25,8 +25,10 @@ Positive quantities use ``elu(x) + 1`` (:func:`elup1`), which is smooth, equals 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Callable, Protocol, Sequence, Union
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -43,6 +45,8 @@ from .factorized import (
 )
 from .filtering import FilterResult, filter_loop
 from .layers import elup1, mlp
+from .locally_linear_jit import band_pairs, locally_linear_filter_jit
+from . import _jit
 
 __all__ = [
     "elup1",
@@ -145,6 +149,21 @@ class BlockMatrix(nn.Module):
         (the predict arithmetic of Eq. rkn-predict with zero noise; exact for diagonal blocks)."""
         zero = belief.mean.new_zeros(belief.mean.shape[-1])
         return factorized_predict_from_matrix(belief, self.dense().to(belief.mean.dtype), zero, validate=False)
+
+
+@dataclass(frozen=True)
+class BandParameters:
+    """A locally linear transition in band storage (:mod:`pgm_wm.locally_linear_jit`):
+    ``basis: (4, K, nb)`` values of the blocks 11, 12, 21, 22 at the band pairs ``(bi, bj)``,
+    ``ident: (nb,)`` what is added to the diagonal blocks, and the coefficient net's ``weight:
+    (K, 2m)`` and ``bias: (K,)`` (``None`` for one basis matrix)."""
+
+    basis: Tensor
+    ident: Tensor
+    bi: np.ndarray
+    bj: np.ndarray
+    weight: Tensor | None
+    bias: Tensor | None
 
 
 class LocallyLinearTransition(BlockMatrix):
@@ -267,6 +286,17 @@ class LocallyLinearTransition(BlockMatrix):
         A, m = self.dense_matrix(mean), self.latent_obs_dim
         return A[..., :m, :m], A[..., :m, m:], A[..., m:, :m], A[..., m:, m:]
 
+    def band_parameters(self) -> "BandParameters":
+        """The transition in the band storage of the compiled filter
+        (:mod:`pgm_wm.locally_linear_jit`): basis values at the band pairs, differentiable."""
+        bi, bj = band_pairs(self.latent_obs_dim, self.bandwidth)
+        ii, jj = torch.as_tensor(bi), torch.as_tensor(bj)
+        basis = torch.stack([blk[:, ii, jj] for blk in (self.basis_11, self.basis_12, self.basis_21, self.basis_22)])
+        ident = (ii == jj).to(basis.dtype) * float(self.add_identity)
+        net = self.coefficient_net
+        return BandParameters(basis, ident, bi, bj, None if net is None else net.weight,
+                              None if net is None else net.bias)
+
     def predictor(self) -> Callable[..., FactorizedBelief]:
         """A predict function ``(post, causes=()) -> prior`` equal to :meth:`forward`, with the
         parameter-only work (band masking of the basis, noise transform) done once. Use it inside
@@ -367,6 +397,79 @@ class BeliefDecoder(nn.Module):
         return self.mean_net(belief.mean), elup1(self.var_net(v))
 
 
+def locally_linear_filter(
+    prior: FactorizedBelief,
+    transition: nn.Module,
+    observation: DiagGaussian,
+    mask: Tensor | None = None,
+    inputs: FactorizedBelief | None = None,
+    *,
+    diagonal_only: bool = False,
+    backend: str = "auto",
+) -> FilterResult[FactorizedBelief]:
+    r"""The RKN's filter with a locally linear transition (Eq. rkn-transition): for
+    :math:`t = 1..T`, the update of Eq. (rkn-update), then the predict of Eq. (rkn-predict) with
+    :math:`A_t` mixed from the posterior mean, plus the known causes ``inputs.at(t)``.
+
+    ``backend="reference"`` runs the book's loop (:func:`pgm_wm.filtering.filter_loop` with
+    ``transition.predictor()``); ``"compiled"`` the compiled loop with its hand-written backward
+    pass (:mod:`pgm_wm.locally_linear_jit`, tested equal to the reference, values and gradients,
+    in float32 and float64); ``"auto"`` the compiled loop for CPU tensors when numba is
+    available. ``diagonal_only`` zeroes the side covariance of every prediction and of the prior.
+
+    Args:
+        prior: belief of the first step, batch ``(B,)``.
+        transition: a module with ``predictor()`` and ``band_parameters()``
+            (:class:`LocallyLinearTransition`, :class:`pgm_wm.acrkn.NormBoundedTransition`).
+        observation: ``DiagGaussian(w, w_var)``, each ``(B, T, m)``.
+        mask: ``(B, T)`` bool, True = observed.
+        inputs: the sum of the causes known before the loop, ``mean: (B, T, 2m)``.
+    """
+    if backend not in ("auto", "reference", "compiled"):
+        raise ValueError(f"backend: expected 'auto', 'reference' or 'compiled', got {backend!r}")
+    if diagonal_only:
+        prior = prior.drop_side()
+    w = observation.mean
+    if backend == "auto":
+        backend = "compiled" if _jit.enabled(w) and w.ndim == 3 else "reference"
+    if backend == "reference":
+        predict_step = transition.predictor()
+
+        def predict(post: FactorizedBelief, t: int) -> FactorizedBelief:
+            nxt = predict_step(post, [] if inputs is None else [inputs.at(t)])
+            return nxt.drop_side() if diagonal_only else nxt
+
+        update = lambda b, y, m_t: _update_core(b, y.mean, y.var, m_t)  # noqa: E731
+        return filter_loop(prior, update, predict, observation, mask)
+    B, T, m = w.shape
+    band = transition.band_parameters()
+    dt = w.dtype
+    last = lambda x: x.permute(1, 2, 0)  # noqa: E731   (B, T, k) -> (T, k, B)
+    q = transition.trans_var.to(dt)
+    q3 = torch.cat([q[:m], q.new_zeros(m), q[m:]])
+    if inputs is None:
+        in_z = w.new_zeros(T, 2 * m, B)
+        in_s = q3[None, :, None].expand(T, 3 * m, B)
+    else:
+        in_z = last(inputs.mean.expand(B, T, 2 * m))
+        in_s = last(torch.cat([inputs.var_upper, inputs.cov_side, inputs.var_lower], -1).expand(B, T, 3 * m)
+                    + q3)
+    z0 = prior.mean.expand(B, 2 * m).T
+    s0 = torch.cat([prior.var_upper, prior.cov_side, prior.var_lower], -1).expand(B, 3 * m).T
+    mu = None if mask is None else mask.T.to(dt)
+    Z, S, Zp, Sp, z_last, s_last = locally_linear_filter_jit(
+        z0, s0, last(w), last(observation.var), mu, in_z, in_s, band.basis.to(dt),
+        None if band.weight is None else band.weight.to(dt), None if band.bias is None else band.bias.to(dt),
+        band.ident.to(dt), band.bi, band.bj, diagonal_only)
+
+    def belief(z: Tensor, s: Tensor) -> FactorizedBelief:      # (T, 2m, B), (T, 3m, B) -> batch first
+        z, s = z.permute(2, 0, 1), s.permute(2, 0, 1)
+        return FactorizedBelief(z, s[..., :m], s[..., 2 * m:], s[..., m:2 * m])
+
+    nxt = belief(torch.cat([Z[1:], z_last[None]]), torch.cat([S[1:], s_last[None]]))
+    return FilterResult(belief(Z, S), belief(Zp, Sp), nxt)
+
+
 class RKN(nn.Module):
     r"""Recurrent Kalman Network: ``encoder -> [update, predict]* -> decoder``.
 
@@ -459,10 +562,11 @@ class RKN(nn.Module):
         for c in known:  # causes known before the loop: one summed sequence
             inputs = c if inputs is None else inputs + c
         tr = self.transition
-        if not state and not self.diagonal_only and getattr(tr, "constant", False):
-            A = tr.dense_matrix(prior.mean)
-            fast = diagonal_factorized_filter if tr.diagonal_blocks else factorized_filter
-            return fast(prior, A, tr.trans_var, obs, mask, inputs, validate=False)
+        if not state and not self.diagonal_only and getattr(tr, "constant", False) and tr.diagonal_blocks:
+            return diagonal_factorized_filter(prior, tr.dense_matrix(prior.mean), tr.trans_var, obs, mask, inputs,
+                                              validate=False)
+        if not state and hasattr(tr, "band_parameters"):
+            return locally_linear_filter(prior, tr, obs, mask, inputs, diagonal_only=self.diagonal_only)
         predict_step = tr.predictor()
 
         def predict(post: FactorizedBelief, t: int) -> FactorizedBelief:
