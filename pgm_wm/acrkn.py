@@ -48,7 +48,7 @@ from torch import Tensor, nn
 
 from ._checks import (check_finite, check_input_dtype, check_last_dims, check_mask, check_same_dtype, check_tensor,
                       module_dtype)
-from .beliefs import FactorizedBelief
+from .beliefs import DiagGaussian, FactorizedBelief
 from .factorized import factorized_predict_from_matrix
 from .filtering import FilterResult
 from .rkn import RKN, BandParameters, Cause, LocallyLinearTransition, mlp
@@ -325,11 +325,36 @@ class DifferenceReadout(nn.Module):
 
     def forward(self, obs: Tensor, mask: Tensor | None, delta_mean: Tensor, delta_var: Tensor,
                 last: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """Whole sequence: ``obs, delta_mean, delta_var: (B, T, do)``, ``mask: (B, T)`` -> ``(mean, var)``.
+        r"""Whole sequence: ``obs, delta_mean, delta_var: (B, T, do)``, ``mask: (B, T)`` -> ``(mean, var)``.
 
         ``last: (B, do)`` is the prediction of ``obs[:, 0]`` made before this sequence (the memory
-        if that step is masked; default zeros), e.g. carried from the previous window."""
+        if that step is masked; default zeros), e.g. carried from the previous window.
+
+        Unrolled, Eq. (acrkn-diff) says: with :math:`j \le t` the last observed step,
+        :math:`\hat o_{t+1} = o_j + \sum_{s=j}^{t} c_s` with :math:`c_s = \mathrm{shift} +
+        \mathrm{scale}\odot\delta_s` (and :math:`\hat o_{t+1} = 	ext{last} + \sum_{s\le t} c_s`
+        before the first observation). So the whole sequence is one running sum
+        :math:`C_t = \sum_{s\le t} c_s` (accumulated in float64) and a gather of :math:`o_j` and
+        :math:`C_{j-1}`: :math:`\hat o_{t+1} = o_j + C_t - C_{j-1}`, a handful of tensor operations
+        instead of a loop over time. Tested equal to :meth:`loop`, the step-by-step reference."""
         if not self.predict_differences or mask is None:
+            return self.step(obs, delta_mean, delta_var)
+        B, T, do = obs.shape
+        shift, scale = self.shift.to(delta_mean.dtype), self.scale.to(delta_mean.dtype)
+        steps = (shift + scale * delta_mean).double()
+        C = torch.cat([steps.new_zeros(B, 1, do), steps.cumsum(1)], 1)              # C[:, t + 1] = C_t
+        seen = torch.where(mask, torch.arange(T, device=obs.device), -1).cummax(1).values   # j(t), -1: none yet
+        j = seen.clamp_min(0)[..., None].expand(B, T, do)
+        start = torch.zeros_like(obs[:, 0]) if last is None else last
+        base = torch.where((seen >= 0)[..., None], obs.gather(1, j), start[:, None, :])
+        mean = base + (C[:, 1:] - C.gather(1, j)).to(obs.dtype)
+        return mean, scale * scale * (delta_var + self.var_floor)
+
+    def loop(self, obs: Tensor, mask: Tensor | None, delta_mean: Tensor, delta_var: Tensor,
+             last: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """:meth:`forward` written as the recursion of Eq. (acrkn-diff), one :meth:`step` per time
+        step with the memory rule :meth:`memory` (the readable reference)."""
+        if mask is None:
             return self.step(obs, delta_mean, delta_var)
         means, vars_ = [], []
         for t in range(obs.shape[1]):
@@ -376,6 +401,12 @@ class HybridReadout(DifferenceReadout):
         abs_mean, abs_var = delta_mean[..., do:], delta_var[..., do:] + self.var_floor
         g = torch.sigmoid(self.gate_logit.to(delta_mean.dtype))
         return g * diff_mean + (1 - g) * abs_mean, g * g * diff_var + (1 - g) * (1 - g) * abs_var
+
+    def forward(self, obs: Tensor, mask: Tensor | None, delta_mean: Tensor, delta_var: Tensor,
+                last: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Whole sequence, step by step (:meth:`DifferenceReadout.loop`): the gate makes the memory
+        a discounted sum, not the plain running sum of the difference readout."""
+        return self.loop(obs, mask, delta_mean, delta_var, last)
 
 
 def check_sequences(obs: Tensor, actions: Tensor | None, mask: Tensor | None,
@@ -449,6 +480,7 @@ class AcRKN(nn.Module):
         if readout.decoder_dim != out_dim:
             raise ValueError(f"decoder: out_dim {out_dim} differs from the readout's decoder_dim {readout.decoder_dim}")
         self.obs_dim = readout.obs_dim
+        self.action_dim = getattr(control, "action_dim", None)
         self.latent_obs_dim = transition.latent_obs_dim
         if getattr(control, "latent_obs_dim", self.latent_obs_dim) != self.latent_obs_dim:
             raise ValueError("control: latent_obs_dim differs from the transition's")
@@ -475,26 +507,42 @@ class AcRKN(nn.Module):
         (:func:`control_cause`; none for ``actions=None``). ac-RKN = RKN + this list."""
         return [] if actions is None else [control_cause(self.control, actions)]
 
+    def initial_belief(self, batch_shape: Sequence[int], like: Tensor) -> FactorizedBelief:
+        """The belief of the first step, ``N(0, init_var · I)`` (:meth:`pgm_wm.rkn.RKN.initial_belief`)."""
+        return self.rkn.initial_belief(batch_shape, like)
+
+    def encode(self, obs: Tensor, mask: Tensor | None = None, *, validate: bool = True) -> DiagGaussian:
+        """Eq. (rkn-encoder) on ``obs: (B, T, do)`` with the masked steps zeroed first
+        (:meth:`pgm_wm.rkn.RKN.encode`)."""
+        return self.rkn.encode(obs, mask, validate=validate)
+
     def filter(
         self,
         obs: Tensor,
         actions: Tensor | None,
         mask: Tensor | None = None,
-        extra_causes: Sequence[Cause] = (),
+        causes: Sequence[Cause] = (),
         init: FactorizedBelief | None = None,
+        *,
+        validate: bool = True,
     ) -> FilterResult[FactorizedBelief]:
-        r"""Encode ``obs: (B, T, do)`` and filter with the control term in every predict step.
+        r"""The world model's one filter path: encode ``obs: (B, T, do)``, then
+        ``[update, predict]*`` with the causes :meth:`causes` ``(actions)`` plus ``causes``.
 
         ``actions: (B, T, da)``: ``actions[:, t]`` acts in the predict step ``t -> t+1``. ``None``
         drops the control term (the plain RKN; used for the no-feedback inverse-dynamics ablation).
         ``mask: (B, T)`` True = observed; observations at masked steps are zeroed before
         encoding, so their values can never reach the beliefs or the gradients.
-        ``extra_causes`` are further independent causes of the same predict step (Chapter 5 adds
-        a latent task there), appended after :meth:`causes`.
+        ``causes`` are further independent causes of the same predict step, appended after the
+        control term: the HiP-RSSM adds its latent task here (Chapter 5), MTS3 the slow level's
+        task (Chapter 6). ``init``: the belief of the first step (default :meth:`initial_belief`).
+        ``validate=False`` skips the input checks, for callers that checked their inputs once
+        (:meth:`forward` does, the later chapters' models do at their own boundary).
         """
-        mask = check_sequences(obs, actions, mask, model=self)
-        w = self.rkn.encode(obs, mask)
-        return self.rkn.filter(w, mask=mask, causes=self.causes(actions) + list(extra_causes), init=init)
+        if validate:
+            mask = check_sequences(obs, actions, mask, self.obs_dim, self.action_dim, model=self)
+        w = self.rkn.encode(obs, mask, validate=False)
+        return self.rkn.filter(w, mask=mask, causes=self.causes(actions) + list(causes), init=init, validate=False)
 
     def decode_predictions(self, out: FilterResult, obs: Tensor, mask: Tensor | None,
                            last: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -512,9 +560,10 @@ class AcRKN(nn.Module):
         """Predict :math:`o_{t+1}` for every ``t``: ``(mean, var)`` each ``(B, T, do)``.
 
         Uses only observations with ``mask`` True at indices ``<= t`` and actions ``<= t``.
+        The inputs are checked once here; nothing inside the time loop synchronises with the host.
         """
-        mask = check_sequences(obs, actions, mask, self.obs_dim, model=self)
-        out = self.filter(obs, actions, mask)
+        mask = check_sequences(obs, actions, mask, self.obs_dim, self.action_dim, model=self)
+        out = self.filter(obs, actions, mask, validate=False)
         return self.decode_predictions(out, obs, mask)
 
 

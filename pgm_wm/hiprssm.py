@@ -213,26 +213,30 @@ class HiPRSSM(nn.Module):
                                    getattr(getattr(context_encoder, "encoder", None), "in_dim", None))
 
     def infer_task(self, context: Tensor | None, context_mask: Tensor | None = None,
-                   batch_size: int | None = None, like: Tensor | None = None) -> DiagGaussian:
+                   batch_size: int | None = None, like: Tensor | None = None, *,
+                   validate: bool = True) -> DiagGaussian:
         r"""Context update: :math:`p(l\mid\mathcal C) = \mathcal N(\mu_l, \operatorname{diag}\sigma_l)`.
 
         ``context: (B, N, F)``, ``context_mask: (B, N)``; present elements must be finite (padded
         ones may hold anything, NaN included: they are zeroed before the encoder sees them).
         ``context=None`` means an empty set: the encoder's prior is returned for ``batch_size``
         rows (dtype/device of ``like``). Returns a :class:`pgm_wm.beliefs.DiagGaussian` (it unpacks
-        as ``mean, var``).
+        as ``mean, var``). ``validate=False`` skips the checks (a caller that checked once).
         """
         if context is None:
             if batch_size is None or like is None or self.context_dim is None:
                 raise ValueError("context: None needs batch_size, like and an encoder with in_dim")
             context = torch.zeros(batch_size, 1, self.context_dim, dtype=like.dtype, device=like.device)
             context_mask = torch.zeros(batch_size, 1, dtype=torch.bool, device=like.device)
-        check_tensor("context", context, 2)
+        if validate:
+            check_tensor("context", context, 2)
+            if context_mask is not None:
+                context_mask = check_mask("context_mask", context_mask, tuple(context.shape[:-1]))
         if context_mask is not None:
-            context_mask = check_mask("context_mask", context_mask, tuple(context.shape[:-1]))
             context = torch.where(context_mask[..., None], context,
                                   torch.zeros((), dtype=context.dtype, device=context.device))
-        check_finite("context", context)
+        if validate:
+            check_finite("context", context)
         return DiagGaussian(*self.context_encoder(context, context_mask))
 
     def task_cause(self, task: DiagGaussian | Tensor, task_var: Tensor | None = None) -> FactorizedBelief:
@@ -240,7 +244,9 @@ class HiPRSSM(nn.Module):
         return self.task_transform(_as_task(task, task_var))
 
     def _task(self, obs: Tensor, context: Tensor | None, context_mask: Tensor | None,
-              task: DiagGaussian | tuple[Tensor, Tensor] | None) -> DiagGaussian:
+              task: DiagGaussian | tuple[Tensor, Tensor] | None, validate: bool = True) -> DiagGaussian:
+        if task is not None and not validate:
+            return DiagGaussian(*task)
         if task is not None:
             mean, var = task
             check_tensor("task", mean, 2)
@@ -264,18 +270,25 @@ class HiPRSSM(nn.Module):
 
     def filter(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None, context: Tensor | None = None,
                context_mask: Tensor | None = None, task: DiagGaussian | tuple[Tensor, Tensor] | None = None,
-               init: FactorizedBelief | None = None) -> tuple[FilterResult, DiagGaussian]:
+               init: FactorizedBelief | None = None, *, validate: bool = True) -> tuple[FilterResult, DiagGaussian]:
         """Filter one window: ``(FilterResult, task)``. The task is inferred from the context (or
-        given as ``task = DiagGaussian(mean, var)``) once and enters every predict step. ``init``
-        is the state belief at the window's first step (default: the RKN's initial belief, i.e.
-        the state restarts in every window)."""
+        given as ``task = DiagGaussian(mean, var)``) once and enters every predict step as one
+        more cause of the ac-RKN's filter path (:meth:`pgm_wm.acrkn.AcRKN.filter`). ``init`` is
+        the state belief at the window's first step (default: the RKN's initial belief, i.e. the
+        state restarts in every window). ``validate=False`` skips the input checks."""
         from .acrkn import check_sequences
 
-        mask = check_sequences(obs, actions, mask, model=self)
-        belief = self._task(obs, context, context_mask, task)
-        w = self.acrkn.rkn.encode(obs, mask)
-        out = self.acrkn.rkn.filter(w, mask=mask, causes=self.causes(actions, belief, obs.shape[1]), init=init)
+        if validate:
+            mask = check_sequences(obs, actions, mask, self.obs_dim, self.acrkn.action_dim, model=self)
+        belief = self._task(obs, context, context_mask, task, validate)
+        task_cause = over_time(self.task_cause(belief), obs.shape[1])
+        out = self.acrkn.filter(obs, actions, mask, causes=[task_cause], init=init, validate=False)
         return out, belief
+
+    def decode_predictions(self, out: FilterResult, obs: Tensor, mask: Tensor | None,
+                           last: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """The ac-RKN's readout of the predictions, :meth:`pgm_wm.acrkn.AcRKN.decode_predictions`."""
+        return self.acrkn.decode_predictions(out, obs, mask, last)
 
     def predict(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None, context: Tensor | None = None,
                 context_mask: Tensor | None = None, task: DiagGaussian | tuple[Tensor, Tensor] | None = None
@@ -285,7 +298,7 @@ class HiPRSSM(nn.Module):
         if mask is not None:
             mask = check_mask("mask", mask, tuple(obs.shape[:2]))
         out, belief = self.filter(obs, actions, mask, context, context_mask, task)
-        mean, var = self.acrkn.decode_predictions(out, obs, mask)
+        mean, var = self.decode_predictions(out, obs, mask)
         return mean, var, belief.mean, belief.var
 
     def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None, context: Tensor | None = None,
@@ -352,11 +365,11 @@ class CarriedHiPRSSM(nn.Module):
         for j in range(n_win):
             sl = slice(j * k, (j + 1) * k)
             if j > 0:
-                new = self.hip.infer_task(ctx[:, j - 1], cmask[:, j - 1])
+                new = self.hip.infer_task(ctx[:, j - 1], cmask[:, j - 1], validate=False)
                 seen = cmask[:, j - 1].any(-1, keepdim=True)
                 task = DiagGaussian(torch.where(seen, new.mean, task.mean), torch.where(seen, new.var, task.var))
-            out, _ = self.hip.filter(o[:, sl], a[:, sl], v[:, sl], task=task, init=init)
-            mu, var = self.hip.acrkn.decode_predictions(out, o[:, sl], v[:, sl], last=last)
+            out, _ = self.hip.filter(o[:, sl], a[:, sl], v[:, sl], task=task, init=init, validate=False)
+            mu, var = self.hip.decode_predictions(out, o[:, sl], v[:, sl], last=last)
             means.append(mu)
             vars_.append(var)
             init, last = out.next_prior[:, -1], mu[:, -1]

@@ -55,7 +55,9 @@ A_{11}\bar z^{u-}_i + A_{21}\bar z^{l-}_i`); the mixture gives :math:`\bar\alpha
 :mod:`pgm_wm.factorized_jit` (the same product form of Eq. rkn-update).
 
 Arrays are batch-last (``(..., N)``): the loops over the sequences are innermost and run as
-vector instructions. Values and gradients are tested equal to autograd of the reference loop
+vector instructions. A belief is one packed array of ``5m`` rows, :math:`[z^u; z^l; \sigma^u;
+\sigma^s; \sigma^l]` (:data:`FIELDS`), so that every loop reads and writes few distinct arrays;
+the three small matrix products of a step (logits, mixture, and the mixture's adjoint) go to BLAS. Values and gradients are tested equal to autograd of the reference loop
 in float32 and float64 (``tests/test_locally_linear_jit.py``).
 """
 
@@ -67,7 +69,10 @@ from torch import Tensor
 
 from ._jit import as_array, jit
 
-__all__ = ["band_pairs", "locally_linear_filter_jit"]
+__all__ = ["FIELDS", "band_pairs", "locally_linear_filter_jit"]
+
+FIELDS = ("mean_upper", "mean_lower", "var_upper", "cov_side", "var_lower")
+"""The five ``m``-row blocks of a packed belief, in order."""
 
 
 def band_pairs(m: int, bandwidth: int) -> tuple[np.ndarray, np.ndarray]:
@@ -82,184 +87,160 @@ def band_pairs(m: int, bandwidth: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 @jit
-def _forward(z0, s0, w, r, mu, has_mask, in_z, in_s, basis, ident, bi, bj, Wc, bc, has_coef, diag_only,
-             Z, S, Zp, Sp, z_last, s_last, alpha, Aval):
-    """Forward loop, batch last: ``z0: (2m, N)``, ``s0: (3m, N)`` = ``[σ^u, σ^s, σ^l]``,
-    ``w, r: (T, m, N)``, ``mu: (T, N)`` 1/0, ``in_z: (T, 2m, N)``, ``in_s: (T, 3m, N)``,
-    ``basis: (4, K, nb)``, ``ident: (nb,)``, ``Wc: (K, 2m)``, ``bc: (K,)``. Writes the priors
-    ``Z, S``, posteriors ``Zp, Sp``, the last prediction and, for the backward pass, the mixing
-    weights ``alpha: (T, K, N)`` and the mixed band values ``Aval: (T, 4, nb, N)``."""
+def _forward(x0, w, r, mu, inp, basis_t, ident, bi, bj, Wc, bc, has_coef, diag_only, one, X, P, alpha, Aval):
+    """Forward loop, batch last: ``x0: (5m, N)`` the first prior (packed), ``w, r: (T, m, N)``,
+    ``mu: (T, N)`` 1/0, ``inp: (T, 5m, N)`` the known causes (means, then variances plus the
+    transition noise), ``basis_t: (4 nb, K)`` (the basis values, blocks 11, 12, 21, 22 one
+    after the other), ``ident: (nb,)``, ``Wc: (K, 2m)``, ``bc: (K,)``, ``one`` the number 1 in
+    the arrays' dtype (so that no arithmetic is promoted to float64). Writes the priors
+    ``X: (T + 1, 5m, N)`` (``X[T]`` the prediction after the last step), the posteriors
+    ``P: (T, 5m, N)`` and, for the backward pass, the mixing weights ``alpha: (T, K, N)`` and the
+    mixed band values ``Aval: (T, 4 nb, N)``."""
     T, m, N = w.shape
-    K, nb = basis.shape[1], bi.shape[0]
-    z, s = z0.copy(), s0.copy()
-    zp, sp = np.empty_like(z), np.empty_like(s)
-    logit = np.empty((K, N), dtype=z.dtype)
+    K, nb = basis_t.shape[1], bi.shape[0]
+    two, zero = one + one, one - one
+    u, l, su, ss, sl = 0, m, 2 * m, 3 * m, 4 * m       # row offsets of the packed fields
+    logit = np.empty((K, N), dtype=x0.dtype)
+    X[0] = x0
     for t in range(T):
-        Z[t] = z
-        S[t] = s
+        x, post, wt, rt_, A = X[t], P[t], w[t], r[t], Aval[t]
         # update, Eq. (rkn-update) in product form
         for i in range(m):
             for n in range(N):
-                mt = mu[t, n] if has_mask else 1.0
-                rt = r[t, i, n]
-                su, ss, sl = s[i, n], s[m + i, n], s[2 * m + i, n]
-                g = mt / (su + rt)
-                ge = g * (w[t, i, n] - z[i, n])
-                rho = (1.0 - mt) + rt * g
-                zp[i, n] = z[i, n] + su * ge
-                zp[m + i, n] = z[m + i, n] + ss * ge
-                sp[i, n] = su * rho
-                sp[m + i, n] = ss * rho
-                sp[2 * m + i, n] = sl - ss * ss * g
-        Zp[t] = zp
-        Sp[t] = sp
+                mt, rt = mu[t, n], rt_[i, n]
+                vu, vs, vl = x[su + i, n], x[ss + i, n], x[sl + i, n]
+                g = mt / (vu + rt)
+                ge = g * (wt[i, n] - x[u + i, n])
+                rho = (one - mt) + rt * g
+                post[u + i, n] = x[u + i, n] + vu * ge
+                post[l + i, n] = x[l + i, n] + vs * ge
+                post[su + i, n] = vu * rho
+                post[ss + i, n] = vs * rho
+                post[sl + i, n] = vl - vs * vs * g
         # mixing weights α = softmax(W z⁺ + c)
         if has_coef:
-            for k in range(K):
-                for n in range(N):
-                    logit[k, n] = bc[k]
-                for c in range(2 * m):
-                    wkc = Wc[k, c]
-                    for n in range(N):
-                        logit[k, n] += wkc * zp[c, n]
+            np.dot(Wc, post[:2 * m], logit)
             for n in range(N):
-                mx = logit[0, n]
+                mx = logit[0, n] + bc[0]
                 for k in range(1, K):
-                    mx = max(mx, logit[k, n])
-                tot = 0.0
+                    mx = max(mx, logit[k, n] + bc[k])
+                tot = zero
                 for k in range(K):
-                    e = np.exp(logit[k, n] - mx)
+                    e = np.exp(logit[k, n] + bc[k] - mx)
                     logit[k, n] = e
                     tot += e
                 for k in range(K):
                     alpha[t, k, n] = logit[k, n] / tot
         else:
-            for k in range(K):
-                for n in range(N):
-                    alpha[t, k, n] = 1.0
-        # A_t = ι + Σ_k α_k B_k on the band entries
-        for x in range(4):
-            on_diag = x == 0 or x == 3
-            for p in range(nb):
-                base = ident[p] if on_diag else 0.0
-                for n in range(N):
-                    Aval[t, x, p, n] = base
-                for k in range(K):
-                    bkp = basis[x, k, p]
-                    for n in range(N):
-                        Aval[t, x, p, n] += alpha[t, k, n] * bkp
+            alpha[t] = one
+        # A_t = ι + Σ_k α_k B_k on the band entries: one matrix product (4 nb, K) x (K, N)
+        np.dot(basis_t, alpha[t], A)
+        for p in range(nb):
+            for n in range(N):
+                A[p, n] += ident[p]
+                A[3 * nb + p, n] += ident[p]
         # predict, Eq. (rkn-predict), plus the known causes
-        z[:] = in_z[t]
-        s[:] = in_s[t]
+        nxt = X[t + 1]
+        nxt[:] = inp[t]
         for p in range(nb):
             i, j = bi[p], bj[p]
             for n in range(N):
-                a11, a12, a21, a22 = Aval[t, 0, p, n], Aval[t, 1, p, n], Aval[t, 2, p, n], Aval[t, 3, p, n]
-                pu, pl = zp[j, n], zp[m + j, n]
-                qu, qs, ql = sp[j, n], sp[m + j, n], sp[2 * m + j, n]
-                z[i, n] += a11 * pu + a12 * pl
-                z[m + i, n] += a21 * pu + a22 * pl
-                s[i, n] += a11 * a11 * qu + 2.0 * a11 * a12 * qs + a12 * a12 * ql
-                s[m + i, n] += a21 * a11 * qu + (a22 * a11 + a21 * a12) * qs + a22 * a12 * ql
-                s[2 * m + i, n] += a21 * a21 * qu + 2.0 * a21 * a22 * qs + a22 * a22 * ql
+                a11, a12, a21, a22 = A[p, n], A[nb + p, n], A[2 * nb + p, n], A[3 * nb + p, n]
+                pu, pl = post[u + j, n], post[l + j, n]
+                qu, qs, ql = post[su + j, n], post[ss + j, n], post[sl + j, n]
+                nxt[u + i, n] += a11 * pu + a12 * pl
+                nxt[l + i, n] += a21 * pu + a22 * pl
+                nxt[su + i, n] += a11 * (a11 * qu + two * a12 * qs) + a12 * a12 * ql
+                nxt[ss + i, n] += a21 * a11 * qu + (a22 * a11 + a21 * a12) * qs + a22 * a12 * ql
+                nxt[sl + i, n] += a21 * (a21 * qu + two * a22 * qs) + a22 * a22 * ql
         if diag_only:
-            s[m:2 * m] = 0.0
-    z_last[:] = z
-    s_last[:] = s
+            nxt[ss:ss + m] = zero
 
 
 @jit
-def _backward(Z, S, Zp, Sp, w, r, mu, has_mask, basis, bi, bj, Wc, has_coef, diag_only, alpha, Aval,
-              dZ, dS, dZp, dSp, dz_last, ds_last,
-              g_w, g_r, g_in_z, g_in_s, g_z0, g_s0, g_A, g_logit):
-    """Backward loop (module docstring): from the saved beliefs, ``alpha`` and ``Aval`` and the
-    gradients of the six outputs, the gradients of the inputs (batch last as in
-    :func:`_forward`) and, per step and sequence, the adjoints of the mixed band values
-    ``g_A: (T, 4, nb, N)`` and of the logits ``g_logit: (T, K, N)``. The parameter gradients are
-    sums of their products over steps and sequences, one matrix product each after the loop
-    (reductions inside the loop would not run as vector instructions)."""
+def _backward(X, P, w, r, mu, basis, bi, bj, WcT, has_coef, diag_only, one, alpha, Aval, dX, dP,
+              g_w, g_r, g_inp, g_A, g_logit):
+    """Backward loop (module docstring): from the saved beliefs ``X, P``, ``alpha`` and ``Aval``
+    and the gradients ``dX, dP`` of the outputs, the gradients of ``w, r`` and of the causes
+    ``g_inp: (T, 5m, N)``, and, per step and sequence, the adjoints of the mixed band values
+    ``g_A: (T, 4 nb, N)`` and of the logits ``g_logit: (T, K, N)`` (``basis: (K, 4 nb)``,
+    ``WcT: (2m, K)``). The gradient of the first prior is left in ``dX[0]``. The parameter
+    gradients are sums of products over steps and sequences, one matrix product each after the
+    loop (reductions inside the loop would not run as vector instructions)."""
     T, m, N = w.shape
-    K, nb = basis.shape[1], bi.shape[0]
-    lz, ls = dz_last.copy(), ds_last.copy()              # adjoints of the prediction of step t
-    bz, bs = np.empty_like(lz), np.empty_like(ls)        # adjoints of the posterior of step t
-    if diag_only:
-        ls[m:2 * m] = 0.0
+    K, nb = basis.shape[0], bi.shape[0]
+    two, zero = one + one, one - one
+    u, l, su, ss, sl = 0, m, 2 * m, 3 * m, 4 * m
+    dot = np.empty(N, dtype=X.dtype)
+    dzp = np.empty((2 * m, N), dtype=X.dtype)
+    bp = np.empty((5 * m, N), dtype=X.dtype)            # adjoint of the posterior of step t
     for t in range(T - 1, -1, -1):
-        g_in_z[t] = lz
-        g_in_s[t] = ls
-        bz[:] = dZp[t]
-        bs[:] = dSp[t]
-        dA = g_A[t]
-        dal = g_logit[t]
+        lam = dX[t + 1]                                  # adjoint of the prediction of step t
+        if diag_only:
+            lam[ss:ss + m] = zero                        # that side covariance is a constant zero
+        g_inp[t] = lam
+        bp[:] = dP[t]
+        x, post, A, dA = X[t], P[t], Aval[t], g_A[t]
         # predict backward
         for p in range(nb):
             i, j = bi[p], bj[p]
             for n in range(N):
-                a11, a12, a21, a22 = Aval[t, 0, p, n], Aval[t, 1, p, n], Aval[t, 2, p, n], Aval[t, 3, p, n]
-                pu, pl = Zp[t, j, n], Zp[t, m + j, n]
-                qu, qs, ql = Sp[t, j, n], Sp[t, m + j, n], Sp[t, 2 * m + j, n]
-                lu, ll = lz[i, n], lz[m + i, n]
-                ku, ks, kl = ls[i, n], ls[m + i, n], ls[2 * m + i, n]
+                a11, a12, a21, a22 = A[p, n], A[nb + p, n], A[2 * nb + p, n], A[3 * nb + p, n]
+                pu, pl = post[u + j, n], post[l + j, n]
+                qu, qs, ql = post[su + j, n], post[ss + j, n], post[sl + j, n]
+                lu, ll = lam[u + i, n], lam[l + i, n]
+                ku, ks, kl = lam[su + i, n], lam[ss + i, n], lam[sl + i, n]
                 u1, u2 = a11 * qu + a12 * qs, a11 * qs + a12 * ql
                 v1, v2 = a21 * qu + a22 * qs, a21 * qs + a22 * ql
-                dA[0, p, n] = 2.0 * ku * u1 + ks * v1 + lu * pu
-                dA[1, p, n] = 2.0 * ku * u2 + ks * v2 + lu * pl
-                dA[2, p, n] = 2.0 * kl * v1 + ks * u1 + ll * pu
-                dA[3, p, n] = 2.0 * kl * v2 + ks * u2 + ll * pl
-                bz[j, n] += a11 * lu + a21 * ll
-                bz[m + j, n] += a12 * lu + a22 * ll
-                bs[j, n] += a11 * a11 * ku + a21 * a11 * ks + a21 * a21 * kl
-                bs[m + j, n] += 2.0 * a11 * a12 * ku + (a22 * a11 + a21 * a12) * ks + 2.0 * a21 * a22 * kl
-                bs[2 * m + j, n] += a12 * a12 * ku + a22 * a12 * ks + a22 * a22 * kl
-        # mixture backward: ᾱ_k = Σ_{xy,p} Ā_{xy,p} B_{xy,k,p}
+                dA[p, n] = two * ku * u1 + ks * v1 + lu * pu
+                dA[nb + p, n] = two * ku * u2 + ks * v2 + lu * pl
+                dA[2 * nb + p, n] = two * kl * v1 + ks * u1 + ll * pu
+                dA[3 * nb + p, n] = two * kl * v2 + ks * u2 + ll * pl
+                bp[u + j, n] += a11 * lu + a21 * ll
+                bp[l + j, n] += a12 * lu + a22 * ll
+                bp[su + j, n] += a11 * (a11 * ku + a21 * ks) + a21 * a21 * kl
+                bp[ss + j, n] += two * (a11 * a12 * ku + a21 * a22 * kl) + (a22 * a11 + a21 * a12) * ks
+                bp[sl + j, n] += a12 * (a12 * ku + a22 * ks) + a22 * a22 * kl
         if has_coef:
-            dal[:] = 0.0
-            for x in range(4):
-                for p in range(nb):
-                    for k in range(K):
-                        bkp = basis[x, k, p]
-                        for n in range(N):
-                            dal[k, n] += dA[x, p, n] * bkp
-            # softmax backward: dal becomes the adjoint of the logits; then z̄⁺ += Wᵀ ℓ̄
-            dot = np.zeros(N, dtype=lz.dtype)
+            # mixture backward, ᾱ = B Ā (one matrix product (K, 4 nb) x (4 nb, N)), then the
+            # softmax: ℓ̄_k = α_k (ᾱ_k - Σ_k' α_k' ᾱ_k'), and z̄⁺ += Wᵀ ℓ̄
+            dal = g_logit[t]
+            np.dot(basis, dA, dal)
+            dot[:] = zero
             for k in range(K):
                 for n in range(N):
                     dot[n] += alpha[t, k, n] * dal[k, n]
             for k in range(K):
                 for n in range(N):
                     dal[k, n] = alpha[t, k, n] * (dal[k, n] - dot[n])
-                for c in range(2 * m):
-                    wkc = Wc[k, c]
-                    for n in range(N):
-                        bz[c, n] += wkc * dal[k, n]
-        # update backward, from the saved prior (as in factorized_jit)
+            np.dot(WcT, dal, dzp)
+            bp[:2 * m] += dzp
+        # update backward, from the saved prior (as in factorized_jit); adds into dX[t]
+        lam, wt, rt_ = dX[t], w[t], r[t]
         for i in range(m):
             for n in range(N):
-                zu, su, ss = Z[t, i, n], S[t, i, n], S[t, m + i, n]
-                mt = mu[t, n] if has_mask else 1.0
-                rt = r[t, i, n]
-                d = su + rt
+                zu, vu, vs = x[u + i, n], x[su + i, n], x[ss + i, n]
+                mt, rt = mu[t, n], rt_[i, n]
+                d = vu + rt
                 g = mt / d
-                e = w[t, i, n] - zu
-                rho = (1.0 - mt) + rt * g
-                bpu, bpl = bz[i, n], bz[m + i, n]
-                bqu, bqs, bql = bs[i, n], bs[m + i, n], bs[2 * m + i, n]
-                sz = bpu * su + bpl * ss
+                e = wt[i, n] - zu
+                rho = (one - mt) + rt * g
+                bpu, bpl = bp[u + i, n], bp[l + i, n]
+                bqu, bqs, bql = bp[su + i, n], bp[ss + i, n], bp[sl + i, n]
+                sz = bpu * vu + bpl * vs
                 be = g * sz
-                brho = bqu * su + bqs * ss
-                bg = e * sz + rt * brho - ss * ss * bql
+                brho = bqu * vu + bqs * vs
+                bg = e * sz + rt * brho - vs * vs * bql
                 bd = -bg * g / d
                 g_w[t, i, n] = be
                 g_r[t, i, n] = g * brho + bd
-                lz[i, n] = bpu - be + dZ[t, i, n]
-                lz[m + i, n] = bpl + dZ[t, m + i, n]
-                ls[i, n] = g * e * bpu + rho * bqu + bd + dS[t, i, n]
-                ls[m + i, n] = g * e * bpl + rho * bqs - 2.0 * ss * g * bql + dS[t, m + i, n]
-                ls[2 * m + i, n] = bql + dS[t, 2 * m + i, n]
-        if diag_only:
-            ls[m:2 * m] = 0.0     # the prior's side covariance is a constant zero
-    g_z0[:] = lz
-    g_s0[:] = ls
+                lam[u + i, n] += bpu - be
+                lam[l + i, n] += bpl
+                lam[su + i, n] += g * e * bpu + rho * bqu + bd
+                lam[ss + i, n] += g * e * bpl + rho * bqs - two * vs * g * bql
+                lam[sl + i, n] += bql
+    if diag_only:
+        dX[0, ss:ss + m] = zero
 
 
 def _arr(x: Tensor) -> np.ndarray:
@@ -270,65 +251,56 @@ class _LocallyLinearFilter(torch.autograd.Function):
     """Autograd wrapper of :func:`_forward` / :func:`_backward` (batch-last tensors)."""
 
     @staticmethod
-    def forward(ctx, z0, s0, w, r, mu, in_z, in_s, basis, Wc, bc, ident, bi, bj, diag_only):  # noqa: D102
+    def forward(ctx, x0, w, r, mu, inp, basis, Wc, bc, ident, bi, bj, diag_only):  # noqa: D102
         T, m, N = w.shape
-        K = basis.shape[1]
+        K, nb = basis.shape[1], bi.shape[0]
         opts = dict(dtype=w.dtype, device=w.device)
-        Z, Zp = torch.empty(T, 2 * m, N, **opts), torch.empty(T, 2 * m, N, **opts)
-        S, Sp = torch.empty(T, 3 * m, N, **opts), torch.empty(T, 3 * m, N, **opts)
-        z_last, s_last = torch.empty(2 * m, N, **opts), torch.empty(3 * m, N, **opts)
-        alpha = torch.empty(T, K, N, **opts)
-        Aval = torch.empty(T, 4, bi.shape[0], N, **opts)
-        has_mask, has_coef = mu is not None, Wc is not None
-        dummy = np.zeros((1, 1), dtype=_arr(w).dtype)
-        _forward(_arr(z0), _arr(s0), _arr(w), _arr(r), _arr(mu) if has_mask else dummy, has_mask, _arr(in_z),
-                 _arr(in_s), _arr(basis), _arr(ident), bi, bj, _arr(Wc) if has_coef else dummy,
-                 _arr(bc) if has_coef else dummy[0], has_coef, diag_only,
-                 Z.numpy(), S.numpy(), Zp.numpy(), Sp.numpy(), z_last.numpy(), s_last.numpy(), alpha.numpy(),
-                 Aval.numpy())
-        ctx.save_for_backward(Z, S, Zp, Sp, w, r, mu, basis, Wc, alpha, Aval)
-        ctx.bi, ctx.bj, ctx.diag_only = bi, bj, diag_only
-        return Z, S, Zp, Sp, z_last, s_last
+        X, P = torch.empty(T + 1, 5 * m, N, **opts), torch.empty(T, 5 * m, N, **opts)
+        alpha, Aval = torch.empty(T, K, N, **opts), torch.empty(T, 4 * nb, N, **opts)
+        mu = torch.ones(T, N, **opts) if mu is None else mu
+        has_coef = Wc is not None
+        one = _arr(w).dtype.type(1.0)
+        Wc_, bc_ = (Wc, bc) if has_coef else (torch.zeros(1, 2 * m, **opts), torch.zeros(1, **opts))
+        basis_k = basis.detach().permute(1, 0, 2).reshape(K, 4 * nb)          # (K, 4 nb)
+        _forward(_arr(x0), _arr(w), _arr(r), _arr(mu), _arr(inp), _arr(basis_k.T), _arr(ident), bi, bj, _arr(Wc_),
+                 _arr(bc_), has_coef, diag_only, one, X.numpy(), P.numpy(), alpha.numpy(), Aval.numpy())
+        ctx.save_for_backward(X, P, w, r, mu, basis_k, Wc_, alpha, Aval)
+        ctx.bi, ctx.bj, ctx.diag_only, ctx.has_coef = bi, bj, diag_only, has_coef
+        return X, P
 
     @staticmethod
-    def backward(ctx, dZ, dS, dZp, dSp, dz_last, ds_last):  # noqa: D102
-        Z, S, Zp, Sp, w, r, mu, basis, Wc, alpha, Aval = ctx.saved_tensors
-        T, m, N = w.shape
-        grad = lambda x, like: _arr(torch.zeros_like(like) if x is None else x)  # noqa: E731
-        g_w, g_r = torch.empty_like(w), torch.empty_like(r)
-        g_in_z, g_in_s = torch.empty_like(Z), torch.empty_like(S)
-        g_z0, g_s0 = torch.empty(2 * m, N, dtype=w.dtype), torch.empty(3 * m, N, dtype=w.dtype)
-        has_mask, has_coef = mu is not None, Wc is not None
-        dummy = np.zeros((1, 1), dtype=_arr(w).dtype)
+    def backward(ctx, dX, dP):  # noqa: D102
+        X, P, w, r, mu, basis_k, Wc_, alpha, Aval = ctx.saved_tensors
+        K = basis_k.shape[0]
+        dX = torch.zeros_like(X) if dX is None else dX.clone(memory_format=torch.contiguous_format)
+        dP = torch.zeros_like(P) if dP is None else dP
+        g_w, g_r, g_inp = torch.empty_like(w), torch.empty_like(r), torch.empty_like(P)
         g_A, g_logit = torch.empty_like(Aval), torch.zeros_like(alpha)
-        _backward(_arr(Z), _arr(S), _arr(Zp), _arr(Sp), _arr(w), _arr(r), _arr(mu) if has_mask else dummy, has_mask,
-                  _arr(basis), ctx.bi, ctx.bj, _arr(Wc) if has_coef else dummy, has_coef, ctx.diag_only, _arr(alpha),
-                  _arr(Aval), grad(dZ, Z), grad(dS, S), grad(dZp, Zp), grad(dSp, Sp), grad(dz_last, g_z0),
-                  grad(ds_last, g_s0), g_w.numpy(), g_r.numpy(), g_in_z.numpy(), g_in_s.numpy(), g_z0.numpy(),
-                  g_s0.numpy(), g_A.numpy(), g_logit.numpy())
+        _backward(X.numpy(), P.numpy(), _arr(w), _arr(r), _arr(mu), _arr(basis_k), ctx.bi, ctx.bj, _arr(Wc_.T),
+                  ctx.has_coef, ctx.diag_only, _arr(w).dtype.type(1.0), alpha.numpy(), Aval.numpy(), dX.numpy(),
+                  _arr(dP), g_w.numpy(), g_r.numpy(), g_inp.numpy(), g_A.numpy(), g_logit.numpy())
         # B̄_{xy,k,p} = Σ_{t,n} α_{t,k,n} Ā_{t,xy,p,n};  W̄ = Σ_{t,n} ℓ̄ z⁺ᵀ;  c̄ = Σ_{t,n} ℓ̄
-        K = alpha.shape[1]
-        nb4 = g_A.shape[1] * g_A.shape[2]
-        g_basis = (torch.bmm(alpha, g_A.reshape(T, nb4, N).transpose(1, 2)).sum(0)      # (K, 4 nb)
-                   .reshape(K, 4, -1).transpose(0, 1) if ctx.needs_input_grad[7] else None)
+        g_basis = (torch.bmm(alpha, g_A.transpose(1, 2)).sum(0).reshape(K, 4, -1).transpose(0, 1)
+                   if ctx.needs_input_grad[5] else None)
         g_Wc = g_bc = None
-        if has_coef:
-            g_Wc = torch.bmm(g_logit, Zp.transpose(1, 2)).sum(0) if ctx.needs_input_grad[8] else None
-            g_bc = g_logit.sum((0, 2)) if ctx.needs_input_grad[9] else None
-        return (g_z0, g_s0, g_w, g_r, None, g_in_z, g_in_s, g_basis, g_Wc, g_bc, None, None, None, None)
+        if ctx.has_coef:
+            m2 = ctx.saved_tensors[6].shape[1]
+            g_Wc = torch.bmm(g_logit, P[:, :m2].transpose(1, 2)).sum(0) if ctx.needs_input_grad[6] else None
+            g_bc = g_logit.sum((0, 2)) if ctx.needs_input_grad[7] else None
+        return dX[0], g_w, g_r, None, g_inp, g_basis, g_Wc, g_bc, None, None, None, None
 
 
-def locally_linear_filter_jit(z0: Tensor, s0: Tensor, w: Tensor, r: Tensor, mu: Tensor | None, in_z: Tensor,
-                              in_s: Tensor, basis: Tensor, Wc: Tensor | None, bc: Tensor | None, ident: Tensor,
-                              bi: np.ndarray, bj: np.ndarray, diag_only: bool = False) -> tuple[Tensor, ...]:
-    """The locally linear factorized filter on batch-last tensors (module docstring):
-    ``z0: (2m, N)``, ``s0: (3m, N)`` (``[σ^u, σ^s, σ^l]``), ``w, r: (T, m, N)``, ``mu: (T, N)``
-    1/0 or ``None``, ``in_z: (T, 2m, N)``, ``in_s: (T, 3m, N)`` (cause variances plus the
-    transition noise), ``basis: (4, K, nb)`` band values of the blocks 11, 12, 21, 22 at the pairs
-    ``(bi, bj)`` (:func:`band_pairs`), ``Wc: (K, 2m)`` and ``bc: (K,)`` the coefficient net
-    (``None``: one basis matrix, :math:`\\alpha = 1`), ``ident: (nb,)`` what is added to the
-    diagonal blocks (1 on the diagonal when the identity is added). Returns the priors
-    ``Z: (T, 2m, N)``, ``S: (T, 3m, N)``, the posteriors ``Zp, Sp`` and the last prediction
-    ``z_last: (2m, N)``, ``s_last: (3m, N)``; differentiable in every input but ``mu``,
-    ``ident`` and the index arrays."""
-    return _LocallyLinearFilter.apply(z0, s0, w, r, mu, in_z, in_s, basis, Wc, bc, ident, bi, bj, bool(diag_only))
+def locally_linear_filter_jit(x0: Tensor, w: Tensor, r: Tensor, mu: Tensor | None, inp: Tensor, basis: Tensor,
+                              Wc: Tensor | None, bc: Tensor | None, ident: Tensor, bi: np.ndarray, bj: np.ndarray,
+                              diag_only: bool = False) -> tuple[Tensor, Tensor]:
+    """The locally linear factorized filter on batch-last, packed tensors (module docstring):
+    ``x0: (5m, N)`` the first prior, rows :data:`FIELDS`; ``w, r: (T, m, N)``; ``mu: (T, N)``
+    1/0 or ``None``; ``inp: (T, 5m, N)`` the known causes of each step, packed like a belief
+    (their means, their variances plus the transition noise); ``basis: (4, K, nb)`` band values
+    of the blocks 11, 12, 21, 22 at the pairs ``(bi, bj)`` (:func:`band_pairs`); ``Wc: (K, 2m)``
+    and ``bc: (K,)`` the coefficient net (``None``: one basis matrix, :math:`\alpha = 1`);
+    ``ident: (nb,)`` what is added to the diagonal blocks (1 on the diagonal when the identity is
+    added). Returns ``X: (T + 1, 5m, N)`` (the priors ``X[:T]`` and the predictions ``X[1:]``)
+    and the posteriors ``P: (T, 5m, N)``; differentiable in every input but ``mu``, ``ident``
+    and the index arrays."""
+    return _LocallyLinearFilter.apply(x0, w, r, mu, inp, basis, Wc, bc, ident, bi, bj, bool(diag_only))

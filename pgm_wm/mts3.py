@@ -72,18 +72,18 @@ values and gradients (Section 6.3.6).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import torch
 from torch import Tensor, nn
 
 from ._checks import check_last_dims
-from .acrkn import AcRKN, MLPControl, check_sequences
+from .acrkn import AcRKN, DifferenceReadout, MLPControl, check_sequences
 from .aggregation import BayesianContextEncoder, SetEncoder, _precision_sums, set_update
 from .beliefs import DiagGaussian, FactorizedBelief
 from .factorized import _observation, diagonal_factorized_filter, factorized_predict, linear_cause
 from .filtering import FilterResult
-from .rkn import BeliefDecoder, BlockMatrix, LocallyLinearTransition, ObservationEncoder, zero_missing
+from .rkn import BeliefDecoder, BlockMatrix, Cause, LocallyLinearTransition, ObservationEncoder, zero_missing
 from .datasets.windows import pad_to_windows, to_windows
 
 __all__ = [
@@ -362,30 +362,23 @@ def slow_level_filter(level: TaskSSM, beta: DiagGaussian, alpha: DiagGaussian | 
 
 
 # ----------------------------------------------------------------------------- the fast level
-def _check_fast(fast: AcRKN) -> None:
-    if not isinstance(fast, AcRKN):
-        raise ValueError(f"fast: expected an AcRKN, got {type(fast).__name__}")
-    if getattr(fast.control, "reads_state", True):
-        raise ValueError("fast: the control model must not depend on the state (MLPControl, LinearControl "
-                         "or ZeroControl), so that b(a) can be computed for a whole window at once")
-
-
-def run_fast_level(fast: AcRKN, observation: DiagGaussian, observed: Tensor, causes: Sequence[FactorizedBelief],
+def run_fast_level(fast: AcRKN, obs: Tensor, actions: Tensor, observed: Tensor, causes: Sequence[FactorizedBelief],
                    window: int, detach_fast: bool = True, parallel_windows: bool = True) -> FilterResult:
-    r"""Run the fast level (the RKN loop of ``fast``) over ``K`` windows of ``window`` steps with
-    the given causes, all known before the loop (``(B, K * H, ·)`` sequences: the control term
-    :math:`b(a_t)` and the window task cause :math:`C l_k` repeated over its window).
+    r"""Run the fast level over ``K`` windows of ``window`` steps through its one filter path
+    (:meth:`pgm_wm.acrkn.AcRKN.filter`: its control cause plus ``causes``, here the window task
+    cause :math:`C l_k` repeated over its window, a ``(B, K * H, ·)`` sequence known before the loop).
 
     Args:
-        fast: the fast :class:`pgm_wm.acrkn.AcRKN` (state-independent control model).
-        observation: encoded ``DiagGaussian(w, w_var)``, ``(B, K * H, m)``; observed: ``(B, K * H)`` bool.
+        fast: the fast :class:`pgm_wm.acrkn.AcRKN`.
+        obs: ``(B, K * H, do)`` (zero where not observed), actions: ``(B, K * H, da)``,
+            observed: ``(B, K * H)`` bool.
         detach_fast: cut gradients of the fast belief at window boundaries.
         parallel_windows: with ``detach_fast`` and gradients enabled, first run all windows in
             order **without** gradients (one run over their steps) to get each window's initial
-            belief, then run all windows
-            at once as a batch of ``B * K`` sequences of ``H`` steps. Values and gradients equal the
-            sequential run (the initial beliefs are detached anyway) at a fraction of the cost:
-            the recorded graph is ``H`` steps deep instead of ``K * H``.
+            belief, then run all windows at once as a batch of ``B * K`` sequences of ``H`` steps.
+            Values and gradients equal the sequential run (the initial beliefs are detached
+            anyway) at a fraction of the cost: the recorded graph is ``H`` steps deep instead of
+            ``K * H``.
 
     Returns the fast beliefs ``(B, K * H, ...)``. The prior of the first step of window ``k`` is the
     prior after the last step of window ``k - 1``.
@@ -399,26 +392,22 @@ def run_fast_level(fast: AcRKN, observation: DiagGaussian, observed: Tensor, cau
     for i, c in enumerate(causes):
         if not isinstance(c, FactorizedBelief) or tuple(c.mean.shape) != (B, Tp, 2 * m):
             raise ValueError(f"causes: entry {i} must be a FactorizedBelief sequence with mean {(B, Tp, 2 * m)}")
-    rkn = fast.rkn
-    sl = lambda x, k: x[:, k * H:(k + 1) * H]  # noqa: E731
-    window_of = lambda k: (observation.map(lambda x: sl(x, k)), sl(observed, k),  # noqa: E731
-                           [c.map(lambda x: sl(x, k)) for c in causes])
+
+    def run(sel: Callable[[Tensor], Tensor], init: FactorizedBelief | None) -> FilterResult:
+        return fast.filter(sel(obs), sel(actions), sel(observed), [c.map(sel) for c in causes], init, validate=False)
+
     if detach_fast and parallel_windows and torch.is_grad_enabled() and K > 1:
-        inits = [rkn.initial_belief((B,), observation.mean)]
+        inits = [fast.initial_belief((B,), obs)]
         with torch.no_grad():      # windows 1..K-1 in order = one run over their steps
-            head = lambda x: x[:, : (K - 1) * H]  # noqa: E731
-            run = rkn.filter(observation.map(head), mask=head(observed), causes=[c.map(head) for c in causes],
-                             init=inits[0])
-            inits += [run.next_prior.at(k * H - 1) for k in range(1, K)]
-        flat = lambda x: x.reshape(B * K, H, *x.shape[2:])  # noqa: E731
+            head = run(lambda x: x[:, : (K - 1) * H], inits[0])
+            inits += [head.next_prior.at(k * H - 1) for k in range(1, K)]
         init = FactorizedBelief.stack(inits).map(lambda x: x.reshape(B * K, x.shape[-1]))
-        out = rkn.filter(observation.map(flat), mask=flat(observed), causes=[c.map(flat) for c in causes], init=init)
+        out = run(lambda x: x.reshape(B * K, H, *x.shape[2:]), init)
         return out.map(lambda b: b.map(lambda x: x.reshape(B, K * H, x.shape[-1])))
     outs: list[FilterResult] = []
     init: FactorizedBelief | None = None
     for k in range(K):
-        o, m, c = window_of(k)
-        out = rkn.filter(o, mask=m, causes=c, init=init)
+        out = run(lambda x: x[:, k * H:(k + 1) * H], init)
         last = out.next_prior.at(-1)
         init = last.detach() if detach_fast else last
         outs.append(out)
@@ -506,14 +495,13 @@ class MTS3(nn.Module):
     its windows it is updated, bottom-up, with its window's abstract observations.
 
     Args:
-        fast: the fast level, an :class:`pgm_wm.acrkn.AcRKN` with a state-independent control model.
+        fast: the fast level, an :class:`pgm_wm.acrkn.AcRKN` (its readout's ``var_floor`` is the one
+            variance floor of the predictions: :func:`build_mts3` sets it).
         levels: a :class:`TaskSSM` (the two-level model) or a sequence of them (bottom to top).
         task_matrix: :math:`C` of Eq. (mts3-fast-predict), a :class:`pgm_wm.rkn.BlockMatrix`
             (required when there is a task level).
         detach_fast: cut the gradient of the fast belief between windows (default True).
         parallel_windows: see :func:`run_fast_level` (same values and gradients, faster training).
-        min_var: the one variance floor of the predictions: sets ``fast.readout.var_floor``
-            (``None`` keeps the fast level's floor). Floors are not stacked.
 
     ``forward(obs, actions, mask) -> (mean, var)`` follows the world-model interface (index ``t``
     predicts :math:`o_{t+1}`); :meth:`run` returns all beliefs. ``T`` need not be a multiple of the
@@ -521,13 +509,10 @@ class MTS3(nn.Module):
     """
 
     def __init__(self, fast: AcRKN, levels: TaskSSM | Sequence[TaskSSM] = (), task_matrix: BlockMatrix | None = None,
-                 detach_fast: bool = True, parallel_windows: bool = True, min_var: float | None = None) -> None:
+                 detach_fast: bool = True, parallel_windows: bool = True) -> None:
         super().__init__()
-        _check_fast(fast)
-        if min_var is not None:
-            if min_var < 0:
-                raise ValueError(f"min_var: must be >= 0, got {min_var}")
-            fast.readout.var_floor = float(min_var)
+        if not isinstance(fast, AcRKN):
+            raise ValueError(f"fast: expected an AcRKN, got {type(fast).__name__}")
         levels = [levels] if isinstance(levels, TaskSSM) else list(levels)
         m = fast.latent_obs_dim
         for i, lev in enumerate(levels):
@@ -547,13 +532,8 @@ class MTS3(nn.Module):
             raise ValueError(f"task_matrix: required (a BlockMatrix with m={m}) when there are task levels")
         self.fast, self.levels, self.task_matrix = fast, nn.ModuleList(levels), task_matrix
         self.detach_fast, self.parallel_windows = detach_fast, parallel_windows
-        self.obs_dim, self.action_dim = fast.obs_dim, fast.control.action_dim
+        self.obs_dim, self.action_dim = fast.obs_dim, fast.action_dim
         self.windows = [lev.window for lev in levels]
-
-    @property
-    def min_var(self) -> float:
-        """The variance floor of the predictions (the fast level's readout floor)."""
-        return self.fast.readout.var_floor
 
     @property
     def slow(self) -> TaskSSM:
@@ -599,24 +579,25 @@ class MTS3(nn.Module):
                     posts[i].append(post[i])
         return ([FactorizedBelief.stack(x) for x in priors], [FactorizedBelief.stack(x) for x in posts], alpha)
 
-    def causes(self, actions: Tensor, task_prior: FactorizedBelief | None) -> list[FactorizedBelief]:
+    def task_cause(self, task_prior: FactorizedBelief) -> FactorizedBelief:
+        """The cause :math:`C l_k` of Eq. (mts3-fast-predict) for the window of every step, from the
+        first level's priors ``task_prior: (B, K, 2m)``: a ``(B, K * H, 2m)`` sequence."""
+        H = self.windows[0]
+        return self.task_matrix.cause(task_prior).map(lambda x: x.repeat_interleave(H, dim=1))
+
+    def causes(self, actions: Tensor, task_prior: FactorizedBelief | None) -> list[Cause]:
         """The causes of the fast predict step: the ac-RKN's ``[control]`` plus, with a task level,
-        ``[C l_k]`` for the window of every step (``task_prior: (B, K, 2m)``, the first level's
-        priors). MTS3 fast level = ac-RKN + this last cause."""
-        causes = self.fast.causes(actions)
-        if task_prior is not None:
-            H = self.windows[0]
-            causes.append(self.task_matrix.cause(task_prior).map(lambda x: x.repeat_interleave(H, dim=1)))
-        return causes
+        :meth:`task_cause`. MTS3 fast level = ac-RKN + this last cause."""
+        return self.fast.causes(actions) + ([] if task_prior is None else [self.task_cause(task_prior)])
 
     def run(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> MTS3Output:
         """Filter ``obs: (B, T, do)`` with ``actions: (B, T, da)``, ``mask: (B, T)`` (True = observed)."""
         p = _prepare(obs, actions, mask, self.windows[-1] if self.windows else 1, self.obs_dim, self.action_dim, self)
         task_priors, task_posts, alphas = self.run_task_levels(p) if self.windows else ([], [], [])
-        causes = self.causes(p.actions, task_priors[0] if task_priors else None)
+        task = [] if not task_priors else [self.task_cause(task_priors[0])]
         window = self.windows[0] if self.windows else p.obs.shape[1]
-        w = DiagGaussian(*self.fast.encoder(p.obs))
-        out = run_fast_level(self.fast, w, p.observed, causes, window, self.detach_fast, self.parallel_windows)
+        out = run_fast_level(self.fast, p.obs, p.actions, p.observed, task, window, self.detach_fast,
+                             self.parallel_windows)
         out = out.map(lambda b: b.map(lambda x: x[:, : p.T]))
         mean, var = self.fast.decode_predictions(out, obs, p.mask)
         return MTS3Output(mean, var, out, task_priors, task_posts, alphas)
@@ -635,7 +616,7 @@ FAST_A_INIT = (0.95, 0.2, -0.2, 0.95)
 
 def build_fast_acrkn(obs_dim: int, action_dim: int, latent_obs_dim: int, hidden: Sequence[int] = (32,),
                      bandwidth: int = 0, A_init: Sequence[float] = FAST_A_INIT, decoupled: bool = False,
-                     init_var: float = 10.0, trans_var_init: float = 0.1) -> AcRKN:
+                     init_var: float = 10.0, trans_var_init: float = 0.1, var_floor: float = 1e-4) -> AcRKN:
     r"""The fast level: an ac-RKN with a constant transition (``num_basis=1``), an MLP control
     model and absolute (not difference) readout.
 
@@ -649,7 +630,8 @@ def build_fast_acrkn(obs_dim: int, action_dim: int, latent_obs_dim: int, hidden:
     if decoupled:
         decouple_halves(transition)
     return AcRKN(ObservationEncoder(obs_dim, m, hidden), transition, MLPControl(action_dim, m, hidden),
-                 BeliefDecoder(m, obs_dim, hidden, hidden), init_var=init_var, predict_differences=False)
+                 BeliefDecoder(m, obs_dim, hidden, hidden), init_var=init_var,
+                 readout=DifferenceReadout(obs_dim, predict_differences=False, var_floor=var_floor))
 
 
 def build_mts3(obs_dim: int, action_dim: int, latent_obs_dim: int, window: int, hidden: Sequence[int] = (32,),
@@ -659,9 +641,9 @@ def build_mts3(obs_dim: int, action_dim: int, latent_obs_dim: int, window: int, 
     :class:`TaskSSM`. ``decoupled=True`` gives the diagonal-covariance ("no memory half") ablation,
     ``use_actions=False`` the one without action abstraction."""
     m = latent_obs_dim
-    fast = build_fast_acrkn(obs_dim, action_dim, m, hidden, bandwidth, decoupled=decoupled)
+    fast = build_fast_acrkn(obs_dim, action_dim, m, hidden, bandwidth, decoupled=decoupled, var_floor=min_var)
     slow = TaskSSM(obs_dim, action_dim, m, window, hidden, bandwidth, use_actions, decoupled=decoupled)
-    return MTS3(fast, slow, BlockMatrix(m, bandwidth, decoupled=decoupled), detach_fast, min_var=min_var)
+    return MTS3(fast, slow, BlockMatrix(m, bandwidth, decoupled=decoupled), detach_fast)
 
 
 def build_hierarchical_mts3(obs_dim: int, action_dim: int, latent_obs_dim: int, windows: Sequence[int],
@@ -669,8 +651,8 @@ def build_hierarchical_mts3(obs_dim: int, action_dim: int, latent_obs_dim: int, 
                             min_var: float = 1e-4) -> MTS3:
     """An N-level :class:`MTS3` with ``len(windows)`` task levels (N = that + 1)."""
     m = latent_obs_dim
-    fast = build_fast_acrkn(obs_dim, action_dim, m, hidden, bandwidth)
+    fast = build_fast_acrkn(obs_dim, action_dim, m, hidden, bandwidth, var_floor=min_var)
     n = len(windows)
     levels = [TaskSSM(obs_dim, action_dim, m, H, hidden, bandwidth, conditioned=i < n - 1)
               for i, H in enumerate(windows)]
-    return MTS3(fast, levels, BlockMatrix(m, bandwidth) if n else None, detach_fast, min_var=min_var)
+    return MTS3(fast, levels, BlockMatrix(m, bandwidth) if n else None, detach_fast)

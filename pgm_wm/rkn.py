@@ -446,28 +446,24 @@ def locally_linear_filter(
     dt = w.dtype
     last = lambda x: x.permute(1, 2, 0)  # noqa: E731   (B, T, k) -> (T, k, B)
     q = transition.trans_var.to(dt)
-    q3 = torch.cat([q[:m], q.new_zeros(m), q[m:]])
+    q3 = torch.cat([q[:m], q.new_zeros(m), q[m:]])           # noise of σ^u, σ^s, σ^l
     if inputs is None:
-        in_z = w.new_zeros(T, 2 * m, B)
-        in_s = q3[None, :, None].expand(T, 3 * m, B)
+        inp = torch.cat([q3.new_zeros(2 * m), q3])[None, :, None].expand(T, 5 * m, B)
     else:
-        in_z = last(inputs.mean.expand(B, T, 2 * m))
-        in_s = last(torch.cat([inputs.var_upper, inputs.cov_side, inputs.var_lower], -1).expand(B, T, 3 * m)
-                    + q3)
-    z0 = prior.mean.expand(B, 2 * m).T
-    s0 = torch.cat([prior.var_upper, prior.cov_side, prior.var_lower], -1).expand(B, 3 * m).T
+        inp = last(torch.cat([inputs.mean, inputs.var_upper + q3[:m], inputs.cov_side, inputs.var_lower + q3[2 * m:]],
+                             -1).expand(B, T, 5 * m))
+    x0 = torch.cat([prior.mean, prior.var_upper, prior.cov_side, prior.var_lower], -1).expand(B, 5 * m).T
     mu = None if mask is None else mask.T.to(dt)
-    Z, S, Zp, Sp, z_last, s_last = locally_linear_filter_jit(
-        z0, s0, last(w), last(observation.var), mu, in_z, in_s, band.basis.to(dt),
+    X, P = locally_linear_filter_jit(
+        x0, last(w), last(observation.var), mu, inp, band.basis.to(dt),
         None if band.weight is None else band.weight.to(dt), None if band.bias is None else band.bias.to(dt),
         band.ident.to(dt), band.bi, band.bj, diagonal_only)
 
-    def belief(z: Tensor, s: Tensor) -> FactorizedBelief:      # (T, 2m, B), (T, 3m, B) -> batch first
-        z, s = z.permute(2, 0, 1), s.permute(2, 0, 1)
-        return FactorizedBelief(z, s[..., :m], s[..., 2 * m:], s[..., m:2 * m])
+    def belief(x: Tensor) -> FactorizedBelief:      # packed (T, 5m, B) -> batch first
+        x = x.permute(2, 0, 1)
+        return FactorizedBelief(x[..., :2 * m], x[..., 2 * m:3 * m], x[..., 4 * m:], x[..., 3 * m:4 * m])
 
-    nxt = belief(torch.cat([Z[1:], z_last[None]]), torch.cat([S[1:], s_last[None]]))
-    return FilterResult(belief(Z, S), belief(Zp, Sp), nxt)
+    return FilterResult(belief(X[:T]), belief(P), belief(X[1:]))
 
 
 class RKN(nn.Module):
@@ -530,34 +526,45 @@ class RKN(nn.Module):
         mask: Tensor | None = None,
         causes: Sequence[Cause] = (),
         init: FactorizedBelief | None = None,
+        validate: bool = True,
     ) -> FilterResult[FactorizedBelief]:
-        """Run update/predict over latent observations ``DiagGaussian(w, w_var)``, ``(B, T, m)``.
+        """Run update/predict over latent observations ``DiagGaussian(w, w_var)``, ``(B, T, m)``:
+        the one filter loop of every model of Chapters 3–6 (a model adds its causes).
 
         Call as ``filter(DiagGaussian(w, w_var), mask, causes=..., init=...)``; the older form
         ``filter(w, w_var, mask)`` is still accepted. ``mask: (B, T)`` bool, True = observed
         (False: posterior = prior). ``causes``: see the class docstring; a known cause has
-        ``mean: (B, T, 2m)``. ``init`` defaults to :meth:`initial_belief`.
+        ``mean: (B, T, 2m)``. ``init`` defaults to :meth:`initial_belief`. ``validate=False``
+        skips the argument checks (for callers that checked them once at their boundary).
+
+        A loop without state-dependent causes runs as one call of
+        :func:`locally_linear_filter` (compiled for CPU tensors) or, for a constant transition
+        with diagonal blocks, :func:`pgm_wm.factorized.diagonal_factorized_filter`; otherwise the
+        book's loop runs step by step.
         """
         obs, mask = _observation("observation", observation, args, mask)
-        check_tensor("observation.mean", obs.mean, 3)
-        B, T, m = obs.mean.shape
-        if m != self.latent_obs_dim:
-            raise ValueError(f"observation.mean: expected latent size {self.latent_obs_dim}, got {m}")
-        if T == 0:
-            raise ValueError("observation: need at least one time step, got T = 0")
-        if mask is not None:
-            mask = check_mask("mask", mask, (B, T))
-        if init is not None and not isinstance(init, FactorizedBelief):
-            raise ValueError(f"init: expected a FactorizedBelief, got {type(init).__name__}")
+        B, T, m = obs.mean.shape if obs.mean.ndim == 3 else (None, None, None)
+        if validate:
+            check_tensor("observation.mean", obs.mean, 3)
+            B, T, m = obs.mean.shape
+            if m != self.latent_obs_dim:
+                raise ValueError(f"observation.mean: expected latent size {self.latent_obs_dim}, got {m}")
+            if T == 0:
+                raise ValueError("observation: need at least one time step, got T = 0")
+            if mask is not None:
+                mask = check_mask("mask", mask, (B, T))
+            if init is not None and not isinstance(init, FactorizedBelief):
+                raise ValueError(f"init: expected a FactorizedBelief, got {type(init).__name__}")
         prior = self.initial_belief((B,), obs.mean) if init is None else init
         if self.diagonal_only:
             prior = prior.drop_side()
         known = [c for c in causes if isinstance(c, FactorizedBelief)]
         state = [c for c in causes if not isinstance(c, FactorizedBelief)]
-        for i, c in enumerate(known):
-            if c.latent_obs_dim != m or c.mean.ndim != 3 or tuple(c.mean.shape[:2]) != (B, T):
-                raise ValueError(f"causes: entry {i} must be a FactorizedBelief with mean (B, T, 2m) = "
-                                 f"{(B, T, 2 * m)}, got {tuple(c.mean.shape)}")
+        if validate:
+            for i, c in enumerate(known):
+                if c.latent_obs_dim != m or c.mean.ndim != 3 or tuple(c.mean.shape[:2]) != (B, T):
+                    raise ValueError(f"causes: entry {i} must be a FactorizedBelief with mean (B, T, 2m) = "
+                                     f"{(B, T, 2 * m)}, got {tuple(c.mean.shape)}")
         inputs = None
         for c in known:  # causes known before the loop: one summed sequence
             inputs = c if inputs is None else inputs + c
@@ -579,13 +586,16 @@ class RKN(nn.Module):
         update = lambda b, y, m_t: _update_core(b, y.mean, y.var, m_t)  # noqa: E731
         return filter_loop(prior, update, predict, obs, mask)
 
-    def encode(self, obs: Tensor, mask: Tensor | None = None) -> DiagGaussian:
+    def encode(self, obs: Tensor, mask: Tensor | None = None, *, validate: bool = True) -> DiagGaussian:
         """Encoder, Eq. (rkn-encoder): ``obs: (B, T, obs_dim)`` -> ``DiagGaussian(w, w_var)``, ``(B, T, m)``.
 
         Missing frames (``mask`` False) are replaced by zeros before encoding, so that whatever
         the data holds there (NaN, stale frames) cannot reach the outputs or the gradients.
-        Present frames must be finite.
+        Present frames must be finite (checked unless ``validate=False``).
         """
+        if not validate:
+            return DiagGaussian(*self.encoder(obs if mask is None else torch.where(
+                mask[..., None], obs, torch.zeros((), dtype=obs.dtype, device=obs.device))))
         check_tensor("obs", obs, 3)
         if obs.shape[1] == 0:
             raise ValueError("obs: need at least one time step, got T = 0")
@@ -600,7 +610,10 @@ class RKN(nn.Module):
 
     def forward(self, obs: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Filtering: ``obs: (B, T, obs_dim)`` -> decoded posterior ``(mean, var)`` per step."""
-        out = self.filter(self.encode(obs, mask), mask)
+        check_tensor("obs", obs, 3)
+        if mask is not None:
+            mask = check_mask("mask", mask, tuple(obs.shape[:2]))
+        out = self.filter(self.encode(obs, mask), mask=mask, validate=False)   # encode checked the rest
         return self.decoder(out.posterior)
 
 
