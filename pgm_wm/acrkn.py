@@ -542,7 +542,21 @@ class AcRKN(nn.Module):
         if validate:
             mask = check_sequences(obs, actions, mask, self.obs_dim, self.action_dim, model=self)
         w = self.rkn.encode(obs, mask, validate=False)
-        return self.rkn.filter(w, mask=mask, causes=self.causes(actions) + list(causes), init=init, validate=False)
+        return self.latent_filter(w, mask, self.causes(actions) + list(causes), init)
+
+    def latent_filter(self, observation: DiagGaussian, mask: Tensor | None, causes: Sequence[Cause],
+                      init: FactorizedBelief | None = None) -> FilterResult[FactorizedBelief]:
+        """:meth:`filter` after the encoder: ``[update, predict]*`` over encoded observations
+        ``DiagGaussian(w, w_var)`` (:meth:`encode`) with the *complete* list of causes (this
+        model's :meth:`causes` first). For a caller that encodes and builds the causes once and
+        filters pieces of them (MTS3's windows); no input checks."""
+        return self.rkn.filter(observation, mask=mask, causes=causes, init=init, validate=False)
+
+    @property
+    def causes_known_in_advance(self) -> bool:
+        """True if every cause of :meth:`causes` is known before the loop (the control model
+        does not read the state), so a caller may slice the causes of a sequence into pieces."""
+        return not getattr(self.control, "reads_state", True)
 
     def decode_predictions(self, out: FilterResult, obs: Tensor, mask: Tensor | None,
                            last: Tensor | None = None) -> tuple[Tensor, Tensor]:

@@ -272,16 +272,28 @@ class HiPRSSM(nn.Module):
                context_mask: Tensor | None = None, task: DiagGaussian | tuple[Tensor, Tensor] | None = None,
                init: FactorizedBelief | None = None, *, validate: bool = True) -> tuple[FilterResult, DiagGaussian]:
         """Filter one window: ``(FilterResult, task)``. The task is inferred from the context (or
-        given as ``task = DiagGaussian(mean, var)``) once and enters every predict step as one
-        more cause of the ac-RKN's filter path (:meth:`pgm_wm.acrkn.AcRKN.filter`). ``init`` is
+        given as ``task = DiagGaussian(mean, var)``, ``(B, task_dim)``) once and enters every
+        predict step as one more cause of the ac-RKN's filter path
+        (:meth:`pgm_wm.acrkn.AcRKN.filter`); a task given per step, ``(B, T, task_dim)``, enters
+        step ``t``'s predict with its own value (:class:`CarriedHiPRSSM`). ``init`` is
         the state belief at the window's first step (default: the RKN's initial belief, i.e. the
         state restarts in every window). ``validate=False`` skips the input checks."""
         from .acrkn import check_sequences
 
         if validate:
             mask = check_sequences(obs, actions, mask, self.obs_dim, self.acrkn.action_dim, model=self)
-        belief = self._task(obs, context, context_mask, task, validate)
-        task_cause = over_time(self.task_cause(belief), obs.shape[1])
+        task_mean, task_var = (None, None) if task is None else task
+        if task_mean is not None and task_mean.ndim == 3:          # one task per step, e.g. per window
+            if validate:
+                if task_mean.shape[:2] != obs.shape[:2]:
+                    raise ValueError(f"task: a task per step needs shape (B, T, task_dim) with (B, T) = "
+                                     f"{tuple(obs.shape[:2])}, got {tuple(task_mean.shape)}")
+                self._task(obs, None, None, (task_mean.flatten(1), task_var.flatten(1)))
+            belief = DiagGaussian(task_mean, task_var)
+            task_cause = self.task_cause(belief)
+        else:
+            belief = self._task(obs, context, context_mask, task, validate)
+            task_cause = over_time(self.task_cause(belief), obs.shape[1])
         out = self.acrkn.filter(obs, actions, mask, causes=[task_cause], init=init, validate=False)
         return out, belief
 
@@ -342,35 +354,50 @@ class CarriedHiPRSSM(nn.Module):
         self.register_buffer("diff_scale", torch.ones(do) if diff_scale is None else torch.as_tensor(diff_scale).clone())
         self.obs_dim = do
 
+    def tasks(self, obs: Tensor, actions: Tensor, valid: Tensor) -> DiagGaussian:
+        """The task of every window, ``(B, K, task_dim)``: window ``j`` gets the task posterior
+        from the observed interactions of window ``j - 1``, or keeps the task of window ``j - 1``
+        when that context set is empty; window 0 the task prior. ``obs, actions, valid`` are
+        ``(B, K * H, ·)`` with the masked observations zeroed. The windows' context sets do not
+        depend on the filter, so all are encoded at once; the carrying rule is an index gather."""
+        from .datasets.windows import context_features
+
+        B, Tp = valid.shape
+        k = self.window
+        n_win = Tp // k
+        view = lambda x: x.reshape(B, n_win, k, *x.shape[2:])  # noqa: E731
+        shift, scale = self.diff_shift.to(obs.dtype), self.diff_scale.to(obs.dtype)
+        ctx, cmask = context_features(view(obs), view(actions), view(valid), shift, scale)   # window j's own
+        post = self.hip.infer_task(ctx.flatten(0, 1), cmask.flatten(0, 1), validate=False)
+        prior = self.hip.infer_task(None, None, B, obs)
+        # table row 0: the prior; row 1 + i: the posterior from window i's context
+        table_mean = torch.cat([prior.mean[:, None], post.mean.reshape(B, n_win, -1)], 1)
+        table_var = torch.cat([prior.var[:, None], post.var.reshape(B, n_win, -1)], 1)
+        seen = cmask.any(-1)                                                     # (B, K)
+        idx = torch.arange(n_win, device=obs.device)
+        last_seen = torch.where(seen, idx + 1, 0).cummax(1).values               # row of the latest seen window
+        source = torch.cat([torch.zeros_like(last_seen[:, :1]), last_seen[:, :-1]], 1)   # window j: rows up to j - 1
+        pick = source[..., None].expand(B, n_win, table_mean.shape[-1])
+        return DiagGaussian(table_mean.gather(1, pick), table_var.gather(1, pick))
+
     def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """``obs: (B, T, do)``, ``actions: (B, T, da)``, ``mask: (B, T)`` -> ``(mean, var)`` each
-        ``(B, T, do)``; masked observations are zeroed first and never reach the beliefs."""
+        ``(B, T, do)``; masked observations are zeroed first and never reach the beliefs.
+
+        Carrying the state belief from window to window is filtering the whole sequence in one
+        run, with the task cause of step ``t`` the task of ``t``'s window (:meth:`tasks`); so this
+        is one call of the HiP-RSSM's filter with a task per step, and the readout's memory runs
+        on across the windows as well."""
         from .acrkn import check_sequences
-        from .datasets.windows import context_features, pad_to_windows
+        from .datasets.windows import pad_to_windows
 
         mask = check_sequences(obs, actions, mask, self.obs_dim, model=self.hip)
         B, T, _ = obs.shape
         valid = torch.ones(B, T, dtype=torch.bool, device=obs.device) if mask is None else mask
         obs = mask_observations(obs, valid)
-        k = self.window
-        o, a, v = (pad_to_windows(x, k) for x in (obs, actions, valid))
-        n_win = o.shape[1] // k
-        view = lambda x: x.reshape(B, n_win, k, *x.shape[2:])  # noqa: E731
-        shift, scale = self.diff_shift.to(obs.dtype), self.diff_scale.to(obs.dtype)
-        ctx, cmask = context_features(view(o), view(a), view(v), shift, scale)   # window j's own interactions
-        task = self.hip.infer_task(None, None, B, o)
-        init: FactorizedBelief | None = None
-        last: Tensor | None = None
-        means, vars_ = [], []
-        for j in range(n_win):
-            sl = slice(j * k, (j + 1) * k)
-            if j > 0:
-                new = self.hip.infer_task(ctx[:, j - 1], cmask[:, j - 1], validate=False)
-                seen = cmask[:, j - 1].any(-1, keepdim=True)
-                task = DiagGaussian(torch.where(seen, new.mean, task.mean), torch.where(seen, new.var, task.var))
-            out, _ = self.hip.filter(o[:, sl], a[:, sl], v[:, sl], task=task, init=init, validate=False)
-            mu, var = self.hip.decode_predictions(out, o[:, sl], v[:, sl], last=last)
-            means.append(mu)
-            vars_.append(var)
-            init, last = out.next_prior[:, -1], mu[:, -1]
-        return torch.cat(means, 1)[:, :T], torch.cat(vars_, 1)[:, :T]
+        o, a, v = (pad_to_windows(x, self.window) for x in (obs, actions, valid))
+        task = self.tasks(o, a, v)
+        per_step = task.map(lambda x: x.repeat_interleave(self.window, dim=1))
+        out, _ = self.hip.filter(o, a, v, task=per_step, validate=False)
+        mu, var = self.hip.decode_predictions(out, o, v)
+        return mu[:, :T], var[:, :T]

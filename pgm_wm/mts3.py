@@ -362,16 +362,17 @@ def slow_level_filter(level: TaskSSM, beta: DiagGaussian, alpha: DiagGaussian | 
 
 
 # ----------------------------------------------------------------------------- the fast level
-def run_fast_level(fast: AcRKN, obs: Tensor, actions: Tensor, observed: Tensor, causes: Sequence[FactorizedBelief],
+def run_fast_level(fast: AcRKN, observation: DiagGaussian, observed: Tensor, causes: Sequence[FactorizedBelief],
                    window: int, detach_fast: bool = True, parallel_windows: bool = True) -> FilterResult:
-    r"""Run the fast level over ``K`` windows of ``window`` steps through its one filter path
-    (:meth:`pgm_wm.acrkn.AcRKN.filter`: its control cause plus ``causes``, here the window task
-    cause :math:`C l_k` repeated over its window, a ``(B, K * H, ·)`` sequence known before the loop).
+    r"""Run the fast level over ``K`` windows of ``window`` steps through its filter path
+    (:meth:`pgm_wm.acrkn.AcRKN.latent_filter`) with the given causes, all known before the loop
+    (``(B, K * H, ·)`` sequences: the fast level's own :meth:`pgm_wm.acrkn.AcRKN.causes` and the
+    window task cause :math:`C l_k` repeated over its window).
 
     Args:
-        fast: the fast :class:`pgm_wm.acrkn.AcRKN`.
-        obs: ``(B, K * H, do)`` (zero where not observed), actions: ``(B, K * H, da)``,
-            observed: ``(B, K * H)`` bool.
+        fast: the fast :class:`pgm_wm.acrkn.AcRKN` (its causes known in advance).
+        observation: encoded ``DiagGaussian(w, w_var)`` (:meth:`pgm_wm.acrkn.AcRKN.encode`),
+            ``(B, K * H, m)``; observed: ``(B, K * H)`` bool.
         detach_fast: cut gradients of the fast belief at window boundaries.
         parallel_windows: with ``detach_fast`` and gradients enabled, first run all windows in
             order **without** gradients (one run over their steps) to get each window's initial
@@ -394,10 +395,10 @@ def run_fast_level(fast: AcRKN, obs: Tensor, actions: Tensor, observed: Tensor, 
             raise ValueError(f"causes: entry {i} must be a FactorizedBelief sequence with mean {(B, Tp, 2 * m)}")
 
     def run(sel: Callable[[Tensor], Tensor], init: FactorizedBelief | None) -> FilterResult:
-        return fast.filter(sel(obs), sel(actions), sel(observed), [c.map(sel) for c in causes], init, validate=False)
+        return fast.latent_filter(observation.map(sel), sel(observed), [c.map(sel) for c in causes], init)
 
     if detach_fast and parallel_windows and torch.is_grad_enabled() and K > 1:
-        inits = [fast.initial_belief((B,), obs)]
+        inits = [fast.initial_belief((B,), observation.mean)]
         with torch.no_grad():      # windows 1..K-1 in order = one run over their steps
             head = run(lambda x: x[:, : (K - 1) * H], inits[0])
             inits += [head.next_prior.at(k * H - 1) for k in range(1, K)]
@@ -513,6 +514,9 @@ class MTS3(nn.Module):
         super().__init__()
         if not isinstance(fast, AcRKN):
             raise ValueError(f"fast: expected an AcRKN, got {type(fast).__name__}")
+        if not fast.causes_known_in_advance:
+            raise ValueError("fast: the control model must not depend on the state (MLPControl, LinearControl "
+                             "or ZeroControl), so that b(a) can be computed for a whole window at once")
         levels = [levels] if isinstance(levels, TaskSSM) else list(levels)
         m = fast.latent_obs_dim
         for i, lev in enumerate(levels):
@@ -594,10 +598,10 @@ class MTS3(nn.Module):
         """Filter ``obs: (B, T, do)`` with ``actions: (B, T, da)``, ``mask: (B, T)`` (True = observed)."""
         p = _prepare(obs, actions, mask, self.windows[-1] if self.windows else 1, self.obs_dim, self.action_dim, self)
         task_priors, task_posts, alphas = self.run_task_levels(p) if self.windows else ([], [], [])
-        task = [] if not task_priors else [self.task_cause(task_priors[0])]
+        causes = self.causes(p.actions, task_priors[0] if task_priors else None)
         window = self.windows[0] if self.windows else p.obs.shape[1]
-        out = run_fast_level(self.fast, p.obs, p.actions, p.observed, task, window, self.detach_fast,
-                             self.parallel_windows)
+        w = self.fast.encode(p.obs, validate=False)       # _prepare checked the inputs and zeroed the masked steps
+        out = run_fast_level(self.fast, w, p.observed, causes, window, self.detach_fast, self.parallel_windows)
         out = out.map(lambda b: b.map(lambda x: x[:, : p.T]))
         mean, var = self.fast.decode_predictions(out, obs, p.mask)
         return MTS3Output(mean, var, out, task_priors, task_posts, alphas)
