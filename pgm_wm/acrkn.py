@@ -309,11 +309,22 @@ class DifferenceReadout(nn.Module):
 
         ``var_floor`` is added to the decoded variance (in decoder units) so that an ``elu + 1``
         output that underflows to 0 in float32 cannot make the likelihood infinite."""
+        return self.step_mean(memory, delta_mean), self.step_var(delta_var)
+
+    def step_mean(self, memory: Tensor, delta_mean: Tensor) -> Tensor:
+        """The mean of :meth:`step`: ``memory + shift + scale * delta_mean`` (or ``delta_mean``)."""
+        if not self.predict_differences:
+            return delta_mean
+        return memory + self.shift.to(delta_mean.dtype) + self.scale.to(delta_mean.dtype) * delta_mean
+
+    def step_var(self, delta_var: Tensor) -> Tensor:
+        """The variance of :meth:`step`: ``scale² (delta_var + var_floor)`` (it never depends on
+        the memory, so a caller may compute it for all steps at once)."""
         delta_var = delta_var + self.var_floor
         if not self.predict_differences:
-            return delta_mean, delta_var
-        shift, scale = self.shift.to(delta_mean.dtype), self.scale.to(delta_mean.dtype)
-        return memory + shift + scale * delta_mean, scale * scale * delta_var
+            return delta_var
+        scale = self.scale.to(delta_var.dtype)
+        return scale * scale * delta_var
 
     @staticmethod
     def memory(obs_t: Tensor, mask_t: Tensor | None, last_pred: Tensor | None) -> Tensor:

@@ -26,12 +26,13 @@ from __future__ import annotations
 from typing import Sequence
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ._checks import mask_observations
 from .acrkn import DifferenceReadout, check_sequences
 from .factorized import FactorizedBelief, factorized_update
-from .layers import GaussianHead, mlp
+from .layers import GaussianHead, elup1, mlp
 from .rkn import BeliefDecoder, LocallyLinearTransition, ObservationEncoder
 
 __all__ = [
@@ -44,10 +45,16 @@ __all__ = [
 
 
 class FeedbackModel(nn.Module):
-    """Base class: a step-by-step world model fed :math:`[m_t, a_t, \\text{flag}_t]` at every step.
+    """Base class: a step-by-step world model fed :math:`[m_t, a_t, \text{flag}_t]` at every step.
 
     Subclasses implement :meth:`init_state` and :meth:`step` (returning the normalized
-    difference's mean and variance); :meth:`forward` runs the loop with the memory rule.
+    difference's mean and variance); :meth:`forward_reference` runs the loop with the memory rule,
+    step by step. :meth:`forward` runs the same loop with less work inside it: a subclass may
+    override :meth:`prepare` (the parts of the input known before the loop, computed for all
+    steps at once), :meth:`advance` (one step that returns only what the next step needs) and
+    :meth:`variance` (the decoded variance, which is never fed back, for all steps after the
+    loop). The defaults reduce to :meth:`step`; :meth:`forward` is tested equal to
+    :meth:`forward_reference` for every baseline.
     """
 
     def __init__(self, obs_dim: int, action_dim: int, predict_differences: bool = True,
@@ -66,17 +73,49 @@ class FeedbackModel(nn.Module):
     def step(self, state: object, x: Tensor) -> tuple[object, Tensor, Tensor]:  # pragma: no cover
         raise NotImplementedError
 
-    def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """``(mean, var)`` each ``(B, T, do)``; index ``t`` predicts ``obs[:, t + 1]``."""
+    def prepare(self, actions: Tensor, flags: Tensor) -> Tensor:
+        """The input parts known before the loop, ``(B, T, ·)``: by default ``[a_t, flag_t]``."""
+        return torch.cat([actions, flags], dim=-1)
+
+    def advance(self, state: object, memory: Tensor, prepared: Tensor) -> tuple[object, Tensor, Tensor]:
+        """One step from the memory :math:`m_t` and ``prepared[:, t]``: ``(state, feature,
+        delta_mean)``; :meth:`variance` turns the stacked features into the decoded variances."""
+        state, d_mean, d_var = self.step(state, torch.cat([memory, prepared], dim=-1))
+        return state, d_var, d_mean
+
+    def variance(self, features: Tensor) -> Tensor:
+        """The decoded variances ``(B, T, do)`` from the stacked features of :meth:`advance`."""
+        return features
+
+    def _inputs(self, obs: Tensor, actions: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
         mask = check_sequences(obs, actions, mask, self.obs_dim, self.action_dim, model=self)
         B, T = obs.shape[:2]
         if mask is None:
             mask = torch.ones(B, T, dtype=torch.bool, device=obs.device)
-        obs = mask_observations(obs, mask)
-        state = self.init_state(B, obs)
+        return mask_observations(obs, mask), actions, mask
+
+    def forward(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """``(mean, var)`` each ``(B, T, do)``; index ``t`` predicts ``obs[:, t + 1]``."""
+        obs, actions, mask = self._inputs(obs, actions, mask)
+        prepared = self.prepare(actions, mask[..., None].to(obs.dtype))
+        state = self.init_state(obs.shape[0], obs)
+        last: Tensor | None = None
+        means, features = [], []
+        for t in range(obs.shape[1]):
+            mem = DifferenceReadout.memory(obs[:, t], mask[:, t], last)
+            state, feature, d_mean = self.advance(state, mem, prepared[:, t])
+            last = self.readout.step_mean(mem, d_mean)
+            means.append(last)
+            features.append(feature)
+        return torch.stack(means, 1), self.readout.step_var(self.variance(torch.stack(features, 1)))
+
+    def forward_reference(self, obs: Tensor, actions: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """:meth:`forward` written plainly: :meth:`step` and the readout at every step."""
+        obs, actions, mask = self._inputs(obs, actions, mask)
+        state = self.init_state(obs.shape[0], obs)
         last: Tensor | None = None
         means, vars_ = [], []
-        for t in range(T):
+        for t in range(obs.shape[1]):
             mem = DifferenceReadout.memory(obs[:, t], mask[:, t], last)
             x = torch.cat([mem, actions[:, t], mask[:, t, None].to(obs.dtype)], dim=-1)
             state, d_mean, d_var = self.step(state, x)
@@ -128,6 +167,37 @@ class _RNNBaseline(FeedbackModel):
         self.cell = self.cell_type(enc_hidden[-1] if len(enc_hidden) else self.input_dim, hidden)
         self.head = GaussianHead(hidden, obs_dim, dec_hidden)
 
+    # the fast loop: the encoder's first layer acts on [m_t, a_t, flag_t]; its action and flag
+    # columns are applied to all steps before the loop, only the memory columns inside it; the
+    # variance head (never fed back) runs once on all hidden states after the loop
+    def _first(self) -> nn.Linear | None:
+        first = self.encoder[0] if isinstance(self.encoder, nn.Sequential) and len(self.encoder) else None
+        return first if isinstance(first, nn.Linear) else None
+
+    def prepare(self, actions: Tensor, flags: Tensor) -> Tensor:
+        first = self._first()
+        x = torch.cat([actions, flags], dim=-1)
+        return x if first is None else F.linear(x, first.weight[:, self.obs_dim:], first.bias)
+
+    def _features(self, memory: Tensor, prepared: Tensor) -> Tensor:
+        first = self._first()
+        if first is None:
+            return self.encoder(torch.cat([memory, prepared], dim=-1))
+        h = F.linear(memory, first.weight[:, :self.obs_dim]) + prepared
+        for layer in list(self.encoder)[1:]:
+            h = layer(h)
+        return h
+
+    def advance(self, state: object, memory: Tensor, prepared: Tensor) -> tuple[object, Tensor, Tensor]:
+        state, h = self._cell(state, self._features(memory, prepared))
+        return state, h, self.head.mean_net(h)
+
+    def variance(self, features: Tensor) -> Tensor:
+        return elup1(self.head.var_net(features))
+
+    def _cell(self, state: object, x: Tensor) -> tuple[object, Tensor]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
 
 class LSTMBaseline(_RNNBaseline):
     """LSTM world model: ``MLP encoder -> LSTMCell(hidden) -> Gaussian head``."""
@@ -143,6 +213,10 @@ class LSTMBaseline(_RNNBaseline):
         mean, var = self.head(h)
         return (h, c), mean, var
 
+    def _cell(self, state: tuple[Tensor, Tensor], x: Tensor) -> tuple[tuple[Tensor, Tensor], Tensor]:
+        h, c = self.cell(x, state)
+        return (h, c), h
+
 
 class GRUBaseline(_RNNBaseline):
     """GRU world model: ``MLP encoder -> GRUCell(hidden) -> Gaussian head``."""
@@ -156,6 +230,10 @@ class GRUBaseline(_RNNBaseline):
         h = self.cell(self.encoder(x), state)
         mean, var = self.head(h)
         return h, mean, var
+
+    def _cell(self, state: Tensor, x: Tensor) -> tuple[Tensor, Tensor]:
+        h = self.cell(x, state)
+        return h, h
 
 
 class FFNNBaseline(FeedbackModel):

@@ -61,6 +61,27 @@ def test_shapes_positive_variance_and_causality(name):
     assert not torch.allclose(model(obs, act3, mask)[0][:, t0], mean[:, t0])
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("name", list(BUILDERS))
+def test_fast_loop_equals_the_step_by_step_reference(name, dtype):
+    """forward (inputs known in advance applied before the loop, variances after it) equals
+    forward_reference (step() at every step): values and parameter gradients."""
+    torch.manual_seed(0)
+    model = BUILDERS[name]().to(dtype)
+    obs, act, mask = (x.to(dtype) if x.is_floating_point() else x for x in data(4, 12))
+    tol = dict(rtol=1e-5, atol=1e-5) if dtype == torch.float32 else dict(rtol=1e-11, atol=1e-11)
+    fast, ref = model(obs, act, mask), model.forward_reference(obs, act, mask)
+    w = torch.randn_like(obs)
+    params = list(model.parameters())
+    g_fast = torch.autograd.grad(((fast[0] + fast[1]) * w).sum(), params, allow_unused=True)
+    g_ref = torch.autograd.grad(((ref[0] + ref[1]) * w).sum(), params, allow_unused=True)
+    for a, b in zip(fast + g_fast, ref + g_ref):
+        if a is None or b is None:
+            assert a is None and b is None
+        else:
+            torch.testing.assert_close(a, b, **tol)
+
+
 @pytest.mark.parametrize("name", list(BUILDERS))
 def test_batch_equals_sequential(name):
     model = build(name)
