@@ -57,7 +57,8 @@ A_{11}\bar z^{u-}_i + A_{21}\bar z^{l-}_i`); the mixture gives :math:`\bar\alpha
 Arrays are batch-last (``(..., N)``): the loops over the sequences are innermost and run as
 vector instructions. A belief is one packed array of ``5m`` rows, :math:`[z^u; z^l; \sigma^u;
 \sigma^s; \sigma^l]` (:data:`FIELDS`), so that every loop reads and writes few distinct arrays;
-the three small matrix products of a step (logits, mixture, and the mixture's adjoint) go to BLAS. Values and gradients are tested equal to autograd of the reference loop
+the small matrix products of a step (logits, mixture, and their adjoints) are loops over the
+sequences (:func:`_matmul`). Values and gradients are tested equal to autograd of the reference loop
 in float32 and float64 (``tests/test_locally_linear_jit.py``).
 """
 
@@ -84,6 +85,25 @@ def band_pairs(m: int, bandwidth: int) -> tuple[np.ndarray, np.ndarray]:
             rows.append(i)
             cols.append(j)
     return np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+
+
+@jit
+def _matmul(a, b, out, accumulate):
+    """``out (+)= a @ b`` for C-contiguous ``a: (I, K)``, ``b: (K, N)``: the loop over ``N`` (the
+    sequences) innermost, so it runs as vector instructions. Written out instead of ``np.dot``:
+    these products are small, and a multi-threaded BLAS (OpenBLAS starts threads from about
+    N = 128) can be a hundred times slower on a machine whose cores are busy."""
+    I, K = a.shape
+    N = b.shape[1]
+    for i in range(I):
+        row = out[i]
+        if not accumulate:
+            row[:] = 0
+        for k in range(K):
+            aik = a[i, k]
+            bk = b[k]
+            for n in range(N):
+                row[n] += aik * bk[n]
 
 
 @jit
@@ -119,7 +139,7 @@ def _forward(x0, w, r, mu, inp, basis_t, ident, bi, bj, Wc, bc, has_coef, diag_o
                 post[sl + i, n] = vl - vs * vs * g
         # mixing weights α = softmax(W z⁺ + c)
         if has_coef:
-            np.dot(Wc, post[:2 * m], logit)
+            _matmul(Wc, post[:2 * m], logit, False)
             for n in range(N):
                 mx = logit[0, n] + bc[0]
                 for k in range(1, K):
@@ -134,7 +154,7 @@ def _forward(x0, w, r, mu, inp, basis_t, ident, bi, bj, Wc, bc, has_coef, diag_o
         else:
             alpha[t] = one
         # A_t = ι + Σ_k α_k B_k on the band entries: one matrix product (4 nb, K) x (K, N)
-        np.dot(basis_t, alpha[t], A)
+        _matmul(basis_t, alpha[t], A, False)
         for p in range(nb):
             for n in range(N):
                 A[p, n] += ident[p]
@@ -172,7 +192,6 @@ def _backward(X, P, w, r, mu, basis, bi, bj, WcT, has_coef, diag_only, one, alph
     two, zero = one + one, one - one
     u, l, su, ss, sl = 0, m, 2 * m, 3 * m, 4 * m
     dot = np.empty(N, dtype=X.dtype)
-    dzp = np.empty((2 * m, N), dtype=X.dtype)
     bp = np.empty((5 * m, N), dtype=X.dtype)            # adjoint of the posterior of step t
     for t in range(T - 1, -1, -1):
         lam = dX[t + 1]                                  # adjoint of the prediction of step t
@@ -205,7 +224,7 @@ def _backward(X, P, w, r, mu, basis, bi, bj, WcT, has_coef, diag_only, one, alph
             # mixture backward, ᾱ = B Ā (one matrix product (K, 4 nb) x (4 nb, N)), then the
             # softmax: ℓ̄_k = α_k (ᾱ_k - Σ_k' α_k' ᾱ_k'), and z̄⁺ += Wᵀ ℓ̄
             dal = g_logit[t]
-            np.dot(basis, dA, dal)
+            _matmul(basis, dA, dal, False)
             dot[:] = zero
             for k in range(K):
                 for n in range(N):
@@ -213,8 +232,7 @@ def _backward(X, P, w, r, mu, basis, bi, bj, WcT, has_coef, diag_only, one, alph
             for k in range(K):
                 for n in range(N):
                     dal[k, n] = alpha[t, k, n] * (dal[k, n] - dot[n])
-            np.dot(WcT, dal, dzp)
-            bp[:2 * m] += dzp
+            _matmul(WcT, dal, bp[:2 * m], True)
         # update backward, from the saved prior (as in factorized_jit); adds into dX[t]
         lam, wt, rt_ = dX[t], w[t], r[t]
         for i in range(m):
