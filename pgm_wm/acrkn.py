@@ -504,7 +504,7 @@ class AcRKN(nn.Module):
 
         Uses only observations with ``mask`` True at indices ``<= t`` and actions ``<= t``.
         """
-        mask = check_sequences(obs, actions, mask, self.obs_dim, model=self)
+        mask = check_sequences(obs, actions, mask, self.obs_dim, getattr(self.control, "action_dim", None), model=self)
         out = self.filter(obs, actions, mask)
         return self.decode_predictions(out, obs, mask)
 
