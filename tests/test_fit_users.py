@@ -6,7 +6,6 @@ curve. Each test failed (or hung) before the change it checks."""
 from __future__ import annotations
 
 import math
-import os
 import subprocess
 import sys
 import textwrap
