@@ -32,9 +32,9 @@ check_python() {
     "$1" - <<'PY'
 import sys
 major, minor = sys.version_info[:2]
-if (major, minor) < (3, 10):
+if (major, minor) < (3, 11):
     print(f"[setup] ERROR: {sys.executable} is Python {major}.{minor}; pgm_wm needs Python 3.11 "
-          "(3.10 or newer). Install Python 3.11 and run again with PYTHON=/path/to/python3.11",
+          "or newer. Install Python 3.11 and run again with PYTHON=/path/to/python3.11",
           file=sys.stderr)
     sys.exit(1)
 if (major, minor) != (3, 11):
