@@ -13,7 +13,9 @@ r"""Training: seeding, observation masks, the one loss factory and the one fit l
 * :func:`floor_variance` — wrap a model so its predictive variances are at least ``min_var``.
 * :func:`fit` — the one minibatch loop: seeded, Adam with gradient-norm clipping, a compute
   budget in CPU seconds and/or an epoch cap, early stopping with patience and keep-best on a
-  *validation* loss, and a hard stop (``ValueError``) at the first non-finite loss or gradient.
+  *validation* loss (after every epoch or every ``valid_every`` steps), a learning curve
+  (:attr:`FitHistory.curve`), checkpoint/resume, a ``device``, and a hard stop (``ValueError``)
+  at the first non-finite loss or gradient.
 
 Multi-step / open-loop evaluation lives in :mod:`pgm_wm.evaluation`.
 """
