@@ -49,7 +49,7 @@ import torch  # noqa: E402
 
 from pgm_wm.gaussian import Gaussian  # noqa: E402
 from pgm_wm.kalman import kalman_filter, rts_smoother  # noqa: E402
-from pgm_wm.kalman_parallel import parallel_kalman_filter, parallel_rts_smoother  # noqa: E402
+from pgm_wm.kalman_parallel import parallel_rts_smoother  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -279,7 +279,7 @@ def table(args) -> dict:
 def print_table(rows: dict, args) -> str:
     cols = [f"{s}|{w}" for s in ("all observed", "10% missing") for w in ("filter", "smoother")]
     base = rows["pgm_wm fast"]
-    lines = [f"| contender | " + " | ".join(f"{c.replace('|', ', ')}: CPU s (ratio)" for c in cols) + " | max abs diff |",
+    lines = ["| contender | " + " | ".join(f"{c.replace('|', ', ')}: CPU s (ratio)" for c in cols) + " | max abs diff |",
              "|---|" + "---|" * (len(cols) + 1)]
     for name, r in rows.items():
         cells = [f"{r[c]['cpu']:.3f} ({r[c]['cpu'] / base[c]['cpu']:.2f})" for c in cols]

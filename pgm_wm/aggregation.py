@@ -80,6 +80,10 @@ def _check_set(r: Tensor, r_var: Tensor, mask: Tensor | None, validate: bool) ->
         present = r_var if mask is None else r_var[mask]
         if present.numel():
             check_positive("r_var", present)
+            kept = r_var.detach() if mask is None else torch.where(mask[..., None], r_var.detach(), 1.0)
+            if not bool(torch.isfinite((1.0 / kept).sum(-2)).all()):  # the summed precision overflows
+                raise ValueError(f"r_var: {float(present.min()):.3g} is too small for {r_var.dtype}: the precision "
+                                 f"sum of 1 / r_var overflows; use float64 or a variance floor")
             if not bool(torch.isfinite(r if mask is None else r[mask]).all()):
                 raise ValueError("r: contains NaN or infinite values")
     return mask

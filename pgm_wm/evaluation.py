@@ -72,24 +72,36 @@ def multistep_predict(
     The model sees ``obs[:, :context_len]`` and the actions ``actions[:, :context_len + horizon - 1]``;
     later observations are **not passed** to it (zeros and ``mask`` False are), so no future
     observation can leak. Returns ``(mean, var)`` of shape ``(B, horizon, do)`` where index
-    ``k - 1`` is the :math:`k`-step-ahead prediction of ``obs[:, context_len - 1 + k]``.
-    ``horizon`` defaults to ``T - context_len``.
+    ``k - 1`` is the :math:`k`-step-ahead prediction of the observation at step
+    ``context_len - 1 + k``.
+
+    ``obs: (B, T_obs, do)`` needs only the context (``T_obs >= context_len``; longer is fine,
+    the rest is ignored), ``actions: (B, T_act, da)`` at least ``context_len + horizon - 1``
+    steps: to forecast past the end of the data, pass the observations you have and the actions
+    you plan, no dummy observations. ``horizon`` defaults to ``T_act - context_len``.
     """
     check_tensor("obs", obs, 3)
     check_tensor("actions", actions, 3)
-    B, T = obs.shape[:2]
-    if tuple(actions.shape[:2]) != (B, T):
-        raise ValueError(f"actions: expected leading shape {(B, T)}, got {tuple(actions.shape)}")
-    if not isinstance(context_len, int) or not 1 <= context_len < T:
-        raise ValueError(f"context_len: must be an int in [1, T-1] = [1, {T - 1}], got {context_len!r}")
+    B, T_obs = obs.shape[:2]
+    if B == 0:
+        raise ValueError("obs: no sequences (B = 0); is the evaluation or validation set empty?")
+    if actions.shape[0] != B:
+        raise ValueError(f"actions: expected {B} sequences like obs, got shape {tuple(actions.shape)}")
+    T_act = actions.shape[1]
+    if not isinstance(context_len, int) or not 1 <= context_len <= min(T_obs, T_act):
+        raise ValueError(f"context_len: must be an int in [1, {min(T_obs, T_act)}] (observed and acted steps), "
+                         f"got {context_len!r}")
     if horizon is None:
-        horizon = T - context_len
-    if not isinstance(horizon, int) or not 1 <= horizon <= T - context_len:
-        raise ValueError(f"horizon: must be an int in [1, {T - context_len}], got {horizon!r}")
-    L = context_len + horizon - 1  # inputs 0..L-1; output L-1 predicts obs[L]
+        horizon = T_act - context_len
+    if not isinstance(horizon, int) or not 1 <= horizon <= T_act - context_len + 1:
+        raise ValueError(f"horizon: must be an int in [1, {T_act - context_len + 1}] (the actions cover "
+                         f"{T_act} steps), got {horizon!r}")
+    L = context_len + horizon - 1  # inputs 0..L-1; output L-1 predicts the observation at step L
     mask = torch.zeros(B, L, dtype=torch.bool, device=obs.device)
     mask[:, :context_len] = True
-    mean, var = model(mask_observations(obs[:, :L], mask), actions[:, :L], mask)
+    seen = obs.new_zeros(B, L, obs.shape[2])
+    seen[:, :context_len] = obs[:, :context_len]
+    mean, var = model(mask_observations(seen, mask), actions[:, :L], mask)
     return mean[:, context_len - 1:], var[:, context_len - 1:]
 
 
@@ -146,6 +158,8 @@ def evaluate_open_loop(
     such a prediction, instead of an error.
     """
     check_tensor("obs", obs, 3)
+    if obs.shape[0] == 0:
+        raise ValueError("obs: no sequences (B = 0); is the evaluation or validation set empty?")
     if (obs_mean is None) != (obs_std is None):
         raise ValueError("obs_std: give obs_mean and obs_std together")
     T = obs.shape[1]

@@ -95,6 +95,7 @@ def _observation(name: str, observation: DiagGaussian | Tensor, rest: tuple, mas
         if len(rest) > 2:
             raise ValueError(f"{name}: unexpected extra positional arguments (pass causes=..., init=... by name)")
         w_var = rest[0]
+        check_tensor(f"{name}.mean", observation, 1)
         check_tensor(f"{name}.var", w_var, 1)
         if tuple(w_var.shape) != tuple(observation.shape):
             raise ValueError(f"{name}.var: expected the shape of {name}.mean {tuple(observation.shape)}, "

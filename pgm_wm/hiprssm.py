@@ -309,6 +309,10 @@ class HiPRSSM(nn.Module):
         check_tensor("obs", obs, 3)
         if mask is not None:
             mask = check_mask("mask", mask, tuple(obs.shape[:2]))
+        enc = self.context_encoder
+        in_dim = getattr(enc, "in_dim", None) or getattr(getattr(enc, "encoder", None), "in_dim", None)
+        if context is not None and in_dim is not None:
+            check_last_dims("context", context, (None, in_dim))
         out, belief = self.filter(obs, actions, mask, context, context_mask, task)
         mean, var = self.decode_predictions(out, obs, mask)
         return mean, var, belief.mean, belief.var

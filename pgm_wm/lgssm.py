@@ -9,22 +9,78 @@ as its logarithm (so it stays positive), with the **exact diffuse initialization
 Koopman (2012) as an option: the limit of ``init.cov`` → ∞, in which the first observation
 fixes the state (``H`` square and invertible, e.g. the local-level model) and its
 improper likelihood term is dropped.
+
+The user API of a fitted model: :meth:`LinearGaussianSSM.filter`, :meth:`~LinearGaussianSSM.smooth`,
+:meth:`~LinearGaussianSSM.forecast` (observation forecasts with prediction intervals, a
+:class:`Forecast`) and :meth:`~LinearGaussianSSM.plot` (data, filtered and smoothed signal and the
+forecast in one figure); :meth:`LinearGaussianSSM.local_level` builds the local-level model. The
+Nile analysis of Chapter 1 in a dozen lines (the README's script, run verbatim by a test)::
+
+    fit = fit_mle(lambda p: LinearGaussianSSM.local_level(p["var_obs"], p["var_level"]),
+                  y, {"var_obs": 1e4, "var_level": 1e3}, diffuse=True)
+    forecast = fit.model.forecast(y, steps=10, diffuse=True, level=0.9)
+    ax = fit.model.plot(y, x=years, diffuse=True, forecast_steps=10, level=0.9)
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
-from typing import Callable, Mapping
+from statistics import NormalDist
+from typing import Any, Callable, Mapping
 
 import torch
 from torch import Tensor
 
-from ._checks import check_finite, check_last_dims, check_same_dtype, check_spd, check_tensor
+from ._checks import check_finite, check_last_dims, check_mask, check_same_dtype, check_spd, check_tensor
 from .filtering import FilterResult
-from .gaussian import Gaussian
+from .gaussian import Gaussian, marginalize_linear
 from .kalman import Backend, kalman_filter, kf_predict, rts_smoother
 
-__all__ = ["LinearGaussianSSM", "MLEResult", "fit_mle"]
+__all__ = ["LinearGaussianSSM", "Forecast", "MLEResult", "fit_mle"]
+
+
+def _z_value(level: float) -> float:
+    """The two-sided standard-normal quantile of a central interval of probability ``level``."""
+    if not (isinstance(level, (int, float)) and 0.0 < float(level) < 1.0):
+        raise ValueError(f"level: the interval's probability must lie in (0, 1), got {level!r}")
+    return NormalDist().inv_cdf(0.5 + float(level) / 2.0)
+
+
+@dataclass(frozen=True)
+class Forecast:
+    r"""Forecasts of the observations :math:`y_{T+1..T+K}` given :math:`y_{1:T}`, Eq. (kf-predict)
+    applied :math:`K` times and Eq. (gauss-marginal) for :math:`y = Hz + \varepsilon`:
+
+    .. math:: p(y_{T+k}\mid y_{1:T}) = \mathcal N(H\mu_{T+k},\; H\Sigma_{T+k}H^\top + R).
+
+    Attributes:
+        mean: ``(..., K, m)`` forecast means; ``cov``: ``(..., K, m, m)`` their covariances
+            (parameter uncertainty not included).
+        state: the state beliefs :math:`p(z_{T+k}\mid y_{1:T})`, ``(..., K, n)``.
+        level: probability of the central prediction intervals :attr:`lower`..:attr:`upper`
+            (per coordinate, :math:`\mu \pm z_{(1+\text{level})/2}\,\sigma`).
+    """
+
+    mean: Tensor
+    cov: Tensor
+    state: Gaussian
+    level: float = 0.95
+
+    @property
+    def var(self) -> Tensor:
+        """Per-coordinate forecast variances ``(..., K, m)``."""
+        return self.cov.diagonal(dim1=-2, dim2=-1)
+
+    @property
+    def lower(self) -> Tensor:
+        """Lower ends of the ``level`` prediction intervals, ``(..., K, m)``."""
+        return self.mean - _z_value(self.level) * self.var.sqrt()
+
+    @property
+    def upper(self) -> Tensor:
+        """Upper ends of the ``level`` prediction intervals, ``(..., K, m)``."""
+        return self.mean + _z_value(self.level) * self.var.sqrt()
 
 
 @dataclass(frozen=True)
@@ -72,6 +128,31 @@ class LinearGaussianSSM:
     def obs_dim(self) -> int:
         return self.H.shape[-2]
 
+    @classmethod
+    def local_level(cls, var_obs: Tensor | float, var_level: Tensor | float, init_mean: float = 0.0,
+                    init_var: float = 1e7, *, dtype: torch.dtype = torch.float64,
+                    validate: bool = True) -> "LinearGaussianSSM":
+        r"""The local-level (random walk plus noise) model of Chapter 1:
+        :math:`\ell_{t+1} = \ell_t + \eta_t,\ y_t = \ell_t + \varepsilon_t` with
+        :math:`\eta_t\sim\mathcal N(0, \sigma^2_\eta)` (``var_level``),
+        :math:`\varepsilon_t\sim\mathcal N(0, \sigma^2_\varepsilon)` (``var_obs``) and the prior
+        :math:`\ell_1\sim\mathcal N(` ``init_mean``, ``init_var`` :math:`)` (ignored by ``diffuse=True``).
+        Tensor variances keep their gradient and dtype (for :func:`fit_mle`)."""
+        for name, v in (("var_obs", var_obs), ("var_level", var_level)):
+            if isinstance(v, Tensor):
+                if v.numel() != 1:
+                    raise ValueError(f"{name}: expected a scalar, got shape {tuple(v.shape)}")
+                dtype = v.dtype
+            elif not isinstance(v, (int, float)):
+                raise ValueError(f"{name}: expected a number or a scalar tensor, got {type(v).__name__}")
+        one = torch.eye(1, dtype=dtype)
+
+        def scaled(v: Tensor | float) -> Tensor:
+            return (v.reshape(1, 1).to(dtype) if isinstance(v, Tensor) else torch.tensor(float(v), dtype=dtype)) * one
+
+        init = Gaussian(torch.full((1,), float(init_mean), dtype=dtype), float(init_var) * one)
+        return cls(one, one, scaled(var_level), scaled(var_obs), init, validate=validate)
+
     def filter(self, y: Tensor, mask: Tensor | None = None, u: Tensor | None = None, *,
                diffuse: bool = False, backend: Backend = "auto") -> FilterResult[Gaussian]:
         """Eqs. (kf-update, kf-predict, kf-loglik) over ``y: (..., T, m)``; see
@@ -92,6 +173,92 @@ class LinearGaussianSSM:
                diffuse: bool = False) -> Gaussian:
         """RTS smoothed beliefs, Eq. (rts), of :meth:`filter`'s steps."""
         return rts_smoother(self.filter(y, mask, u, diffuse=diffuse), self.F, self.Q)
+
+    def forecast(self, y: Tensor, steps: int, mask: Tensor | None = None, u: Tensor | None = None,
+                 u_future: Tensor | None = None, *, diffuse: bool = False, level: float = 0.95) -> Forecast:
+        r"""Forecast the next ``steps`` observations after ``y: (..., T, m)`` with prediction
+        intervals (:class:`Forecast`): filter the data (:meth:`filter`), then alternate
+        Eq. (kf-predict) and the observation marginal :math:`\mathcal N(H\mu, H\Sigma H^\top + R)`.
+        No observation beyond ``T`` is needed. With a control matrix ``B``: ``u: (..., T, k)`` as
+        for the filter (``u[..., T-1]`` drives step ``T+1``) and ``u_future: (..., steps-1, k)``, the
+        inputs between the forecast steps."""
+        if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
+            raise ValueError(f"steps: expected an int >= 1, got {steps!r}")
+        _z_value(level)
+        if self.B is not None and steps > 1:
+            if u_future is None:
+                raise ValueError(f"u_future: a model with B needs the inputs between the forecast steps, "
+                                 f"shape (..., {steps - 1}, k)")
+            check_tensor("u_future", u_future, min_ndim=2)
+            if u_future.shape[-2] != steps - 1:
+                raise ValueError(f"u_future: expected {steps - 1} steps, got shape {tuple(u_future.shape)}")
+        elif self.B is None and u_future is not None:
+            raise ValueError("u_future: the model has no control matrix B")
+        nxt = self.filter(y, mask, u, diffuse=diffuse).next_prior        # (..., T, n): take the last
+        state = Gaussian(nxt.mean[..., -1, :], nxt.cov[..., -1, :, :])
+        means, covs, s_means, s_covs = [], [], [], []
+        for k in range(steps):
+            obs = marginalize_linear([(self.H, state)], self.R, validate=False)
+            means.append(obs.mean)
+            covs.append(obs.cov)
+            s_means.append(state.mean)
+            s_covs.append(state.cov)
+            if k < steps - 1:
+                if self.B is None:
+                    state = kf_predict(state, self.F, self.Q, validate=False)
+                else:
+                    state = kf_predict(state, self.F, self.Q, self.B, u_future[..., k, :], validate=False)
+        return Forecast(torch.stack(means, -2), torch.stack(covs, -3),
+                        Gaussian(torch.stack(s_means, -2), torch.stack(s_covs, -3)), float(level))
+
+    def plot(self, y: Tensor, mask: Tensor | None = None, u: Tensor | None = None, *, x: Any = None,
+             diffuse: bool = False, forecast_steps: int = 0, u_future: Tensor | None = None,
+             level: float = 0.95, dim: int = 0, ax: Any = None) -> Any:
+        r"""One figure of a single sequence ``y: (T, m)``: the observations (coordinate ``dim``), the
+        filtered and the RTS-smoothed signal :math:`H z_t` with ``level`` bands, and, with
+        ``forecast_steps``, the forecast with its ``level`` prediction interval. ``x: (T,)`` time
+        stamps (default ``0..T-1``; the forecast continues with the last spacing). Returns the
+        matplotlib axis (a new figure unless ``ax`` is given)."""
+        import matplotlib.pyplot as plt
+        import numpy as np
+
+        check_tensor("y", y, min_ndim=2)
+        if y.ndim != 2:
+            raise ValueError(f"y: plot draws one sequence (T, m), got shape {tuple(y.shape)}")
+        T, m = y.shape
+        if not (isinstance(dim, int) and 0 <= dim < m):
+            raise ValueError(f"dim: expected an int in [0, {m - 1}], got {dim!r}")
+        if not isinstance(forecast_steps, int) or forecast_steps < 0:
+            raise ValueError(f"forecast_steps: expected an int >= 0, got {forecast_steps!r}")
+        z = _z_value(level)
+        t = np.arange(T, dtype=float) if x is None else np.asarray(x, dtype=float).reshape(-1)
+        if t.shape != (T,):
+            raise ValueError(f"x: expected {T} time stamps, got shape {t.shape}")
+        seen = np.ones(T, bool) if mask is None else check_mask("mask", mask, (T,)).cpu().numpy()
+        first = 1 if diffuse else 0                  # the diffuse start has beliefs from step 2 on
+        res = self.filter(y, mask, u, diffuse=diffuse)
+        smooth = rts_smoother(res, self.F, self.Q)
+        if ax is None:
+            _, ax = plt.subplots(figsize=(9, 3.5))
+        yn = y[:, dim].detach().cpu().numpy()
+        ax.plot(t[seen], yn[seen], ".", color="0.35", ms=4, label="observation")
+        for name, belief, color in (("filtered", res.posterior, "C0"), ("smoothed", smooth, "C1")):
+            signal = marginalize_linear([(self.H, belief)], validate=False)
+            mean = signal.mean[:, dim].detach().cpu().numpy()
+            sd = signal.cov[:, dim, dim].detach().clamp_min(0).sqrt().cpu().numpy()
+            ax.plot(t[first:], mean, color=color, lw=1.5, label=f"{name} signal")
+            ax.fill_between(t[first:], mean - z * sd, mean + z * sd, color=color, alpha=0.2, lw=0)
+        if forecast_steps:
+            fc = self.forecast(y, forecast_steps, mask, u, u_future, diffuse=diffuse, level=level)
+            step = t[-1] - t[-2] if T > 1 else 1.0
+            tf = t[-1] + step * np.arange(1, forecast_steps + 1)
+            fm = fc.mean[:, dim].detach().cpu().numpy()
+            ax.plot(tf, fm, color="C3", lw=1.5, label="forecast")
+            ax.fill_between(tf, fc.lower[:, dim].detach().cpu().numpy(), fc.upper[:, dim].detach().cpu().numpy(),
+                            color="C3", alpha=0.2, lw=0, label=f"{100 * level:g} % prediction interval")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+        return ax
 
     def log_likelihood(self, y: Tensor, mask: Tensor | None = None, u: Tensor | None = None, *,
                        diffuse: bool = False, drop_first: int = 0) -> Tensor:
@@ -153,7 +320,9 @@ def fit_mle(
     negative log-likelihood of all sequences divided by the number of observed steps (a scale
     that keeps L-BFGS's tolerances meaningful). ``diffuse``: exact diffuse initialization
     (:meth:`LinearGaussianSSM.diffuse_prior`); ``drop_first``: leave out the first terms (the
-    vague-prior convention). ``y: (..., T, m)`` with ``mask``/``u`` as for the filter.
+    vague-prior convention). ``y: (..., T, m)`` with ``mask``/``u`` as for the filter; ``y`` must be
+    finite at observed steps (missing values: ``mask`` False). Raises ``ValueError`` (no silent NaN)
+    when the optimization ends at non-finite parameters or log-likelihood.
     """
     if not init_params:
         raise ValueError("init_params: need at least one parameter")
@@ -161,6 +330,12 @@ def fit_mle(
         if not (float(v) > 0 and torch.isfinite(torch.tensor(float(v)))):
             raise ValueError(f"init_params: {k} must be positive and finite, got {v!r}")
     check_tensor("y", y, min_ndim=2)
+    if mask is not None:
+        mask = check_mask("mask", mask, tuple(y.shape[:-1]))
+    observed_y = y if mask is None else y[mask]
+    if not bool(torch.isfinite(observed_y.detach()).all()):
+        raise ValueError("y: contains NaN or infinite values at observed steps; mark missing values with "
+                         "mask (e.g. mask=torch.isfinite(y).all(-1)), their values are then ignored")
     names = list(init_params)
     log_p = torch.tensor([float(init_params[k]) for k in names], dtype=y.dtype).log().requires_grad_()
     observed = y.shape[:-1].numel() if mask is None else int(mask.sum())
@@ -186,5 +361,10 @@ def fit_mle(
     ll = loglik(lp)
     (grad,) = torch.autograd.grad(ll, lp)
     params = {k: float(lp[i].detach().exp()) for i, k in enumerate(names)}
+    ll_value = float(ll.detach())
+    bad = [k for k, v in params.items() if not (math.isfinite(v) and v > 0)]
+    if bad or not math.isfinite(ll_value):
+        raise ValueError(f"init_params: the optimization ended at non-finite values (parameters {params}, "
+                         f"log-likelihood {ll_value}); start from other values or check build(params)")
     model = build({k: torch.tensor(v, dtype=y.dtype) for k, v in params.items()})
-    return MLEResult(params, model, float(ll), float(grad.abs().max()), evals[0])
+    return MLEResult(params, model, ll_value, float(grad.detach().abs().max()), evals[0])

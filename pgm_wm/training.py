@@ -13,7 +13,9 @@ r"""Training: seeding, observation masks, the one loss factory and the one fit l
 * :func:`floor_variance` — wrap a model so its predictive variances are at least ``min_var``.
 * :func:`fit` — the one minibatch loop: seeded, Adam with gradient-norm clipping, a compute
   budget in CPU seconds and/or an epoch cap, early stopping with patience and keep-best on a
-  *validation* loss, and a hard stop (``ValueError``) at the first non-finite loss or gradient.
+  *validation* loss (after every epoch or every ``valid_every`` steps), a learning curve
+  (:attr:`FitHistory.curve`), checkpoint/resume, a ``device``, and a hard stop (``ValueError``)
+  at the first non-finite loss or gradient.
 
 Multi-step / open-loop evaluation lives in :mod:`pgm_wm.evaluation`.
 """
@@ -21,11 +23,14 @@ Multi-step / open-loop evaluation lives in :mod:`pgm_wm.evaluation`.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import os
 import random
+import sys
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
@@ -274,35 +279,66 @@ def imputation_loss_fn(
 
 # ============================================================================= the fit loop
 def show_progress(progress: bool | None) -> bool:
-    """Whether to draw a progress bar: ``progress`` if given, else unless the environment variable
-    ``PGM_WM_PROGRESS`` is ``0`` (the book build sets it so rendered pages show no widgets)."""
-    if progress is None:
-        return os.environ.get("PGM_WM_PROGRESS", "1").strip() != "0"
-    return bool(progress)
+    """Whether to draw a progress bar: ``progress`` if given; else never when the environment
+    variable ``PGM_WM_PROGRESS`` is ``0`` (the book build and the test command set it), always when
+    it is ``1``, and otherwise only in interactive use (a terminal on stderr or a Jupyter kernel)."""
+    if progress is not None:
+        return bool(progress)
+    env = os.environ.get("PGM_WM_PROGRESS", "").strip()
+    if env == "0":
+        return False
+    if env == "1":
+        return True
+    if "ipykernel" in sys.modules:
+        return True
+    try:
+        return sys.stderr is not None and sys.stderr.isatty()
+    except (AttributeError, ValueError):
+        return False
 
 
 @dataclass
 class FitHistory:
-    """What :func:`fit` recorded, one entry per epoch (the last may be a partial epoch).
+    """What :func:`fit` recorded.
 
-    Attributes:
+    Per epoch (the last may be a partial epoch):
         train_loss: mean training loss of the epoch's batches.
-        valid_loss: the validation loss after the epoch (empty without ``valid_fn``).
         steps: optimizer steps done by the end of each epoch.
         epoch_time: wall seconds of each epoch.
-        best_epoch: index of the epoch with the lowest validation loss (``None`` without one).
-        cpu_time / wall_time: CPU seconds (``time.process_time``) and wall seconds in total.
-        stopped: why the loop ended: ``"epochs"``, ``"budget"`` or ``"patience"``.
+
+    Per validation (after every epoch by default, every ``valid_every`` optimizer steps and at the
+    end with ``valid_every``; empty without ``valid_fn``):
+        valid_loss: the validation loss.
+        valid_steps: optimizer steps done when it was computed.
+        curve: the learning curve, one dict per validation: ``{"step", "epoch", "cpu_s", "wall_s",
+            "valid", "train"}``; ``cpu_s`` / ``wall_s`` are CPU (``time.process_time``) and wall
+            seconds since :func:`fit` was entered (validations and setup included), ``train`` the
+            mean training loss of the batches since the previous entry. Without ``valid_fn`` there
+            is one entry per epoch with ``valid`` NaN.
+
+    Totals:
+        best_epoch / best_step: epoch index and optimizer step of the lowest validation loss
+            (``None`` without one).
+        cpu_time / wall_time: CPU seconds and wall seconds in total (setup included).
+        setup_cpu_s: CPU seconds spent inside :func:`fit` before the first batch (checks,
+            optimizer, loading a checkpoint).
+        stopped: why the loop ended: ``"epochs"``, ``"budget"``, ``"patience"`` or ``"interrupted"``.
+        resumed_from_epoch: the epoch a checkpoint resumed at (``None`` for a fresh run).
     """
 
     train_loss: list[float] = field(default_factory=list)
     valid_loss: list[float] = field(default_factory=list)
     steps: list[int] = field(default_factory=list)
     epoch_time: list[float] = field(default_factory=list)
+    valid_steps: list[int] = field(default_factory=list)
+    curve: list[dict[str, float]] = field(default_factory=list)
     best_epoch: int | None = None
+    best_step: int | None = None
     cpu_time: float = 0.0
     wall_time: float = 0.0
+    setup_cpu_s: float = 0.0
     stopped: str = "epochs"
+    resumed_from_epoch: int | None = None
 
     @property
     def epochs(self) -> int:
@@ -330,6 +366,37 @@ def _batch_indices(batch: Any, idx: Tensor | None) -> list[int] | None:
     return [int(i) for i in seq] if isinstance(seq, Tensor) else None
 
 
+def _to_device(batch: Any, device: torch.device | None) -> Any:
+    if device is None:
+        return batch
+    if isinstance(batch, Tensor):
+        return batch.to(device)
+    if isinstance(batch, tuple) and not hasattr(batch, "_fields"):
+        return tuple(_to_device(b, device) for b in batch)
+    if isinstance(batch, list):
+        return [_to_device(b, device) for b in batch]
+    if hasattr(batch, "_fields"):  # a NamedTuple of tensors
+        return type(batch)(*(_to_device(b, device) for b in batch))
+    return batch
+
+
+def _resolve_device(device: torch.device | str | None) -> torch.device | None:
+    if device is None:
+        return None
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as err:
+        raise ValueError(f"device: not a torch device: {device!r}") from err
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device: {device!r} requested but CUDA is not available here")
+    return dev
+
+
+_CHECKPOINT_FORMAT = "pgm_wm.fit checkpoint v1"
+
+
 def fit(
     loss_fn: LossFn,
     params_or_model: nn.Module | Iterable[nn.Parameter],
@@ -349,6 +416,9 @@ def fit(
     *,
     budget_s: float | None = None,
     patience: int | None = None,
+    valid_every: int | None = None,
+    checkpoint: str | os.PathLike | None = None,
+    device: torch.device | str | None = None,
 ) -> FitHistory:
     """Minimize ``loss_fn`` with Adam over minibatches; the package's only training loop.
 
@@ -360,29 +430,48 @@ def fit(
             and at the end) or an iterable of parameters.
         train_tensors: tensors sharing the first (sequence) axis, shuffled each epoch; or a
             sampler ``sample(generator) -> batch`` (e.g. random context sets), called
-            ``max_batches`` times per epoch.
+            ``max_batches`` times per epoch. An empty training set is an error.
         batch_size, lr, weight_decay: the usual; ``clip_norm`` clips the global gradient norm
-            (``None``: no clipping).
+            (``None``: no clipping; the norm is still checked for NaN/inf).
         epochs: an epoch cap; ``budget_s``: a compute budget in **CPU seconds**
-            (``time.process_time``, checked after every batch; the epoch in progress ends there).
-            At least one of the two is required. An epoch cap alone is reproducible; a budget
-            is not across machines.
+            (``time.process_time`` since :func:`fit` was entered, checked after every batch; the
+            epoch in progress ends there). At least one of the two is required. An epoch cap
+            alone is reproducible; a budget is not across machines.
         seed: seeds the shuffling, the crops and the generator passed to ``loss_fn``.
-        valid_fn: called after every epoch under ``torch.no_grad()``; returns the validation
-            loss (lower is better). Pass a *validation* split, never the test split.
-        patience: stop when the validation loss has not improved for this many epochs.
-        keep_best: restore the parameters of the epoch with the best validation loss (default:
-            whenever ``valid_fn`` is given).
+        valid_fn: called under ``torch.no_grad()`` after every epoch (or every ``valid_every``
+            steps); returns the validation loss (lower is better). Pass a *validation* split,
+            never the test split.
+        valid_every: validate every this many optimizer steps (and once more at the end if the
+            last step was not validated) instead of after every epoch; ``patience`` and
+            ``keep_best`` then count validations, not epochs.
+        patience: stop when the validation loss has not improved for this many validations.
+        keep_best: restore the parameters of the validation with the best loss (default:
+            whenever ``valid_fn`` is given); also on Ctrl-C (``KeyboardInterrupt``, re-raised
+            after the restore, with the history as its ``fit_history`` attribute).
         crop_len: cut every minibatch to a random window of ``crop_len`` steps (:func:`random_crop`).
-        max_batches: at most this many minibatches per epoch.
-        progress: a ``tqdm`` bar (:func:`show_progress`).
+        max_batches: at most this many minibatches per epoch (a positive int).
+        progress: a per-batch ``tqdm`` bar with the time left (:func:`show_progress`: by default
+            only in interactive use, never with ``PGM_WM_PROGRESS=0``).
+        checkpoint: a file path. After every epoch the model (or parameters), the optimizer, the
+            best state so far, the epoch, the step count, the CPU seconds used, the generator
+            state and the history are written there (atomically); a later call with the same
+            path resumes from it, so ``budget_s`` and ``epochs`` count the whole run. An existing
+            file written for other parameters is an error.
+        device: move the model and every batch to this device (``"auto"``: CUDA where present);
+            ``None`` leaves everything where it is.
+
+    The learning curve (:attr:`FitHistory.curve`) records steps, epochs, CPU and wall seconds,
+    and the training and validation losses at every validation.
 
     Raises ``ValueError`` naming the epoch, the batch and its sequence indices at the first
     non-finite loss or gradient norm (the parameters are then those before that step).
     """
+    cpu_enter, wall_enter = time.process_time(), time.perf_counter()
     sampler = callable(train_tensors) and not isinstance(train_tensors, (list, tuple))
+    if max_batches is not None and (not isinstance(max_batches, int) or max_batches <= 0):
+        raise ValueError(f"max_batches: must be a positive int or None, got {max_batches!r}")
     if sampler:
-        if max_batches is None or max_batches <= 0:
+        if max_batches is None:
             raise ValueError("max_batches: a sampler needs a positive number of batches per epoch")
         n = 0
     else:
@@ -392,28 +481,37 @@ def fit(
         for i, t in enumerate(train_tensors):
             if not isinstance(t, Tensor) or t.shape[0] != n:
                 raise ValueError(f"train_tensors: tensor {i} must be a Tensor with {n} rows")
+        if n == 0:
+            raise ValueError("train_tensors: the training set is empty (0 sequences), so there is no batch to train on")
     if not isinstance(batch_size, int) or batch_size <= 0:
         raise ValueError(f"batch_size: must be a positive int, got {batch_size!r}")
     if epochs is None and budget_s is None:
         raise ValueError("epochs: give an epoch cap, a CPU-second budget_s, or both")
     if epochs is not None and (not isinstance(epochs, int) or epochs < 0):
         raise ValueError(f"epochs: must be an int >= 0 or None, got {epochs!r}")
-    if budget_s is not None and not budget_s > 0:
-        raise ValueError(f"budget_s: must be positive or None, got {budget_s!r}")
+    if budget_s is not None and not (isinstance(budget_s, (int, float)) and math.isfinite(budget_s) and budget_s > 0):
+        raise ValueError(f"budget_s: must be a positive finite number or None, got {budget_s!r}")
     if not lr > 0:
         raise ValueError(f"lr: must be positive, got {lr}")
     if clip_norm is not None and not clip_norm > 0:
         raise ValueError(f"clip_norm: must be positive or None, got {clip_norm}")
     if patience is not None and (valid_fn is None or not isinstance(patience, int) or patience <= 0):
         raise ValueError(f"patience: needs valid_fn and a positive int, got {patience!r}")
+    if valid_every is not None and (valid_fn is None or not isinstance(valid_every, int) or valid_every <= 0):
+        raise ValueError(f"valid_every: needs valid_fn and a positive int, got {valid_every!r}")
     if keep_best is None:
         keep_best = valid_fn is not None
     if keep_best and valid_fn is None:
         raise ValueError("keep_best: needs valid_fn")
+    dev = _resolve_device(device)
     model = params_or_model if isinstance(params_or_model, nn.Module) else None
+    if model is not None and dev is not None:
+        model.to(dev)
     params = [p for p in (model.parameters() if model is not None else params_or_model) if p.requires_grad]
     if not params:
         raise ValueError("params_or_model: no trainable parameters")
+    if dev is not None and any(p.device != dev for p in params):
+        raise ValueError(f"device: the parameters are not on {dev}; pass a model (moved for you) or move them first")
 
     def snapshot() -> Any:
         if model is not None:
@@ -431,77 +529,146 @@ def fit(
     opt = torch.optim.Adam(params, lr=lr, weight_decay=weight_decay)
     gen = torch.Generator().manual_seed(int(seed))
     hist = FitHistory()
-    best, best_state, since_best, n_steps = float("inf"), None, 0, 0
+    best, best_state, since_best, n_steps, epoch, used_before = float("inf"), None, 0, 0, 0, 0.0
+    ckpt_path = None if checkpoint is None else Path(checkpoint)
+    if ckpt_path is not None and ckpt_path.exists():
+        state = _load_checkpoint(ckpt_path, snapshot(), lr, seed)
+        restore(state["params"])
+        opt.load_state_dict(state["optimizer"])
+        gen.set_state(state["generator"])
+        best, since_best, n_steps, epoch = state["best"], state["since_best"], state["steps"], state["epoch"]
+        best_state, used_before = state["best_state"], state["cpu_used"]
+        hist = FitHistory(**state["history"])
+        hist.resumed_from_epoch = epoch
     n_batches = max_batches if sampler else (n + batch_size - 1) // batch_size
     if max_batches is not None:
         n_batches = min(n_batches, max_batches)
-    cpu0, wall0 = time.process_time(), time.perf_counter()
-    bar = tqdm(total=epochs, desc=desc, disable=not show_progress(progress), leave=True)
-    epoch = 0
+    # CPU seconds of this run and of the runs a checkpoint resumed
+    cpu0, wall0 = cpu_enter - used_before, wall_enter
+    hist.setup_cpu_s = time.process_time() - cpu_enter
+    by_epochs = epochs is not None
+    total = (epochs * n_batches) if by_epochs else round(float(budget_s), 1)
+    bar = tqdm(total=total, initial=min(epoch * n_batches, total) if by_epochs else 0, desc=desc,
+               unit="batch" if by_epochs else "cpu-s", disable=not show_progress(progress), leave=True)
     out_of_budget = False
-    while (epochs is None or epoch < epochs) and not out_of_budget:
-        t0 = time.perf_counter()
-        if model is not None:
-            model.train()
-        perm = None if sampler else torch.randperm(n, generator=gen)
-        total, count = 0.0, 0
-        for b in range(n_batches):
-            idx = None
-            if sampler:
-                batch = train_tensors(gen)
-            else:
-                idx = perm[b * batch_size:(b + 1) * batch_size]
-                batch = tuple(t[idx] for t in train_tensors)
-                if crop_len is not None:
-                    batch = random_crop(batch, crop_len, gen)
-            where = lambda: f"at epoch {epoch}, batch {b} (sequence indices {_batch_indices(batch, idx)})"  # noqa: E731
-            try:
-                loss = loss_fn(batch, gen)
-            except ValueError as err:
-                raise ValueError(f"loss_fn: failed {where()}: {err}") from err
-            if not isinstance(loss, Tensor) or loss.ndim != 0:
-                raise ValueError(f"loss_fn: must return a scalar tensor, got {getattr(loss, 'shape', loss)!r}")
-            value = float(loss.detach())
-            if not math.isfinite(value):
-                raise ValueError(f"loss_fn: non-finite loss {value} {where()}")
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            if clip_norm is not None:
-                norm = float(nn.utils.clip_grad_norm_(params, clip_norm))
-                if not math.isfinite(norm):
-                    raise ValueError(f"loss_fn: non-finite gradient norm {where()}")
-            opt.step()
-            n_steps += 1
-            size = len(idx) if idx is not None else 1
-            total, count = total + value * size, count + size
-            if budget_s is not None and time.process_time() - cpu0 >= budget_s:
-                out_of_budget = True
-                break
-        hist.train_loss.append(total / max(count, 1))
-        hist.steps.append(n_steps)
-        post = {"loss": f"{hist.train_loss[-1]:.4g}"}
+    since_total, since_count = 0.0, 0  # training loss since the last curve entry
+
+    def validate(epoch_now: int) -> bool:
+        """One validation; returns True when patience ran out."""
+        nonlocal best, best_state, since_best, since_total, since_count
+        v = math.nan
         if valid_fn is not None:
             if model is not None:
                 model.eval()
-            with torch.no_grad():
-                v = float(valid_fn())
+            try:
+                with torch.no_grad():
+                    v = float(valid_fn())
+            except ValueError as err:
+                raise ValueError(f"valid_fn: failed after {n_steps} steps (epoch {epoch_now}): {err}") from err
+            finally:
+                if model is not None:
+                    model.train()
             hist.valid_loss.append(v)
-            post["valid"] = f"{v:.4g}"
+            hist.valid_steps.append(n_steps)
             if v < best:
-                best, hist.best_epoch, since_best = v, epoch, 0
+                best, hist.best_epoch, hist.best_step, since_best = v, epoch_now, n_steps, 0
                 if keep_best:
                     best_state = snapshot()
             else:
                 since_best += 1
-        hist.epoch_time.append(time.perf_counter() - t0)
-        bar.update(1)
-        bar.set_postfix(post)
-        epoch += 1
-        if patience is not None and since_best >= patience:
-            hist.stopped = "patience"
-            break
-    if out_of_budget and hist.stopped == "epochs":
-        hist.stopped = "budget"
+        hist.curve.append({"step": n_steps, "epoch": epoch_now, "cpu_s": time.process_time() - cpu0,
+                           "wall_s": time.perf_counter() - wall0, "valid": v,
+                           "train": since_total / since_count if since_count else math.nan})
+        since_total, since_count = 0.0, 0
+        return patience is not None and since_best >= patience
+
+    try:
+        stop = False
+        while (epochs is None or epoch < epochs) and not out_of_budget and not stop:
+            t0 = time.perf_counter()
+            if model is not None:
+                model.train()
+            perm = None if sampler else torch.randperm(n, generator=gen)
+            ep_total, ep_count = 0.0, 0
+            for b in range(n_batches):
+                idx = None
+                if sampler:
+                    batch = train_tensors(gen)
+                else:
+                    idx = perm[b * batch_size:(b + 1) * batch_size]
+                    batch = tuple(t[idx] for t in train_tensors)
+                    if crop_len is not None:
+                        batch = random_crop(batch, crop_len, gen)
+                batch = _to_device(batch, dev)
+                where = lambda: f"at epoch {epoch}, batch {b} (sequence indices {_batch_indices(batch, idx)})"  # noqa: E731
+                try:
+                    loss = loss_fn(batch, gen)
+                except ValueError as err:
+                    raise ValueError(f"loss_fn: failed {where()}: {err}") from err
+                if not isinstance(loss, Tensor) or loss.ndim != 0:
+                    raise ValueError(f"loss_fn: must return a scalar tensor, got {getattr(loss, 'shape', loss)!r}")
+                value = float(loss.detach())
+                if not math.isfinite(value):
+                    raise ValueError(f"loss_fn: non-finite loss {value} {where()}")
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                grads = [p.grad for p in params if p.grad is not None]
+                if clip_norm is not None:
+                    norm = float(nn.utils.clip_grad_norm_(params, clip_norm))
+                else:
+                    norm = float(nn.utils.get_total_norm(grads)) if grads else 0.0
+                if not math.isfinite(norm):
+                    raise ValueError(f"loss_fn: non-finite gradient norm {where()} (the loss {value:.4g} is "
+                                     f"finite; the parameters are those before this step)")
+                opt.step()
+                n_steps += 1
+                size = len(idx) if idx is not None else 1
+                ep_total, ep_count = ep_total + value * size, ep_count + size
+                since_total, since_count = since_total + value * size, since_count + size
+                used = time.process_time() - cpu0
+                if by_epochs:
+                    bar.update(1)
+                else:
+                    bar.update(max(0.0, min(round(used, 1), total) - bar.n))
+                if budget_s is not None and used >= budget_s:
+                    out_of_budget = True
+                if valid_every is not None and n_steps % valid_every == 0:
+                    stop = validate(epoch)
+                    bar.set_postfix({"epoch": epoch, "valid": f"{hist.valid_loss[-1]:.4g}"}, refresh=False)
+                if out_of_budget or stop:
+                    break
+            hist.train_loss.append(ep_total / max(ep_count, 1))
+            hist.steps.append(n_steps)
+            post = {"epoch": epoch, "loss": f"{hist.train_loss[-1]:.4g}"}
+            if valid_every is None:
+                stop = validate(epoch)
+                if valid_fn is not None:
+                    post["valid"] = f"{hist.valid_loss[-1]:.4g}"
+            hist.epoch_time.append(time.perf_counter() - t0)
+            bar.set_postfix(post)
+            epoch += 1
+            if stop:
+                hist.stopped = "patience"
+            if ckpt_path is not None:
+                _save_checkpoint(ckpt_path, snapshot(), opt, gen, best, best_state, since_best, n_steps, epoch,
+                                 time.process_time() - cpu0, hist, lr, seed)
+        if valid_every is not None and (not hist.valid_steps or hist.valid_steps[-1] != n_steps):
+            validate(max(epoch - 1, 0))          # the final state is validated too
+            if ckpt_path is not None:
+                _save_checkpoint(ckpt_path, snapshot(), opt, gen, best, best_state, since_best, n_steps, epoch,
+                                 time.process_time() - cpu0, hist, lr, seed)
+        if out_of_budget and hist.stopped == "epochs":
+            hist.stopped = "budget"
+    except KeyboardInterrupt as interrupt:
+        hist.stopped = "interrupted"
+        if keep_best and best_state is not None:
+            restore(best_state)
+        if model is not None:
+            model.eval()
+        bar.close()
+        hist.cpu_time, hist.wall_time = time.process_time() - cpu0, time.perf_counter() - wall0
+        interrupt.fit_history = hist  # type: ignore[attr-defined]
+        raise
     bar.close()
     if keep_best and best_state is not None:
         restore(best_state)
@@ -509,3 +676,48 @@ def fit(
         model.eval()
     hist.cpu_time, hist.wall_time = time.process_time() - cpu0, time.perf_counter() - wall0
     return hist
+
+
+def _save_checkpoint(path: Path, params: Any, opt: torch.optim.Optimizer, gen: torch.Generator, best: float,
+                     best_state: Any, since_best: int, steps: int, epoch: int, cpu_used: float, hist: FitHistory,
+                     lr: float, seed: int) -> None:
+    """Write the training state (see :func:`fit`'s ``checkpoint``) atomically: temp file + rename."""
+    state = {"format": _CHECKPOINT_FORMAT, "params": params, "optimizer": opt.state_dict(),
+             "generator": gen.get_state(), "best": best, "best_state": best_state, "since_best": since_best,
+             "steps": steps, "epoch": epoch, "cpu_used": cpu_used, "history": dataclasses.asdict(hist),
+             "lr": lr, "seed": seed}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def _load_checkpoint(path: Path, current: Any, lr: float, seed: int) -> dict[str, Any]:
+    """Read a checkpoint of :func:`fit` and check that it belongs to these parameters."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # a damaged or foreign file: say which
+        raise ValueError(f"checkpoint: {path} cannot be read as a fit checkpoint ({type(err).__name__}: {err})") from err
+    if not isinstance(state, dict) or state.get("format") != _CHECKPOINT_FORMAT:
+        raise ValueError(f"checkpoint: {path} is not a pgm_wm fit checkpoint")
+
+    def shapes(x: Any) -> Any:
+        if isinstance(x, dict):
+            return {k: tuple(v.shape) for k, v in x.items() if isinstance(v, Tensor)}
+        return [tuple(v.shape) for v in x]
+
+    if shapes(state["params"]) != shapes(current):
+        raise ValueError(f"checkpoint: {path} was written for other parameters (names or shapes differ); "
+                         f"use another path or delete it to start afresh")
+    if state["seed"] != seed:
+        raise ValueError(f"checkpoint: {path} was written with seed={state['seed']}, this call has seed={seed}")
+
+    def to_like(saved: Any) -> Any:
+        if isinstance(current, dict):
+            return {k: v.to(current[k].device) if isinstance(v, Tensor) else v for k, v in saved.items()}
+        return [v.to(c.device) for v, c in zip(saved, current)]
+
+    state["params"] = to_like(state["params"])
+    if state["best_state"] is not None:
+        state["best_state"] = to_like(state["best_state"])
+    return state

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Run the whole test suite: set up .venv, then run the unit tests in tests/ and execute
-# every chapter notebook in notebooks/ with nbmake, in one pytest session.
+# Run the whole test suite: set up .venv, lint with ruff (rules in pyproject.toml), then run the
+# unit tests in tests/ and execute every chapter notebook in notebooks/ with nbmake, in one
+# pytest session.
 # Exits non-zero on any failure, and also when a chapter listed in _toc.yml is missing
 # or pytest collects nothing.
 #
@@ -24,6 +25,13 @@ echo "[run_tests] $n_tests test files in tests/, $n_notebooks notebooks in noteb
 # Batch runs: no progress bars, and no live ipywidgets (a cell that opens widget comms can make
 # nbclient wait forever; chapter 1 shows a static grid instead, see its slider cell).
 export PGM_WM_PROGRESS=0 PGM_WM_WIDGETS=0
+
+# Lint first (about a second): a failure here stops before the long pytest run.
+if ! ruff check --quiet .; then
+    echo "[run_tests] FAILED: ruff found the problems above (rules in pyproject.toml [tool.ruff])" >&2
+    exit 1
+fi
+echo "[run_tests] ruff: clean"
 
 start=$(date +%s)
 status=0

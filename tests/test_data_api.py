@@ -151,3 +151,41 @@ def test_split_sizes_and_bad_arguments():
         split_sequences(np.zeros((5, 4, 1)))
     with pytest.raises(ValueError, match="^index"):
         data.subset([7])
+
+
+def test_split_sequences_unpacks_into_train_valid_test():
+    """issue 24: a dict made `train, valid, test = split_sequences(...)` unpack the key strings."""
+    from pgm_wm.datasets import SequenceSplits
+
+    rng = np.random.default_rng(0)
+    data = SequenceData.from_arrays(rng.normal(size=(20, 6, 2)), rng.normal(size=(20, 6, 1)))
+    train, valid, test = split_sequences(data, (0.6, 0.2, 0.2), seed=1)
+    assert (train.split, valid.split, test.split) == ("train", "valid", "test")
+    torch.testing.assert_close(valid.stats["obs_mean"], train.stats["obs_mean"])
+    parts = split_sequences(data, (0.6, 0.2, 0.2), seed=1)
+    assert isinstance(parts, SequenceSplits) and isinstance(parts, tuple)
+    assert parts.valid is parts["valid"] is parts[1] and parts.keys() == ("train", "valid", "test")
+    assert [k for k, _ in parts.items()] == ["train", "valid", "test"] and len(parts.values()) == 3
+    with pytest.raises(KeyError):
+        parts["nope"]
+    a, b = split_sequences(data, (0.5, 0.5), names=("fit", "holdout"))
+    assert (a.split, b.split) == ("fit", "holdout")
+    assert split_sequences(data, (0.5, 0.5), names=("fit", "holdout")).holdout.split == "holdout"
+    with pytest.raises(ValueError, match="^names"):
+        split_sequences(data, (0.5, 0.5), names=("a b", "c"))
+
+
+def test_variances_are_rescaled_to_original_units():
+    """denormalize_obs_var / denormalize_diff_var: the variance of the denormalized quantity
+    (checked on samples: Var(std * x + mean) = std^2 Var(x))."""
+    rng = np.random.default_rng(2)
+    data = SequenceData.from_arrays(rng.normal(3.0, [2.0, 0.5], size=(30, 40, 2)), rng.normal(size=(30, 40, 1)))
+    g = torch.Generator().manual_seed(0)
+    var_norm = torch.tensor([0.3, 2.0])
+    samples = torch.randn(200_000, 2, generator=g) * var_norm.sqrt()
+    emp = data.denormalize_obs(samples).var(0)
+    torch.testing.assert_close(data.denormalize_obs_var(var_norm), emp, rtol=1e-2, atol=0)
+    emp_d = data.denormalize_diff(samples).var(0)
+    torch.testing.assert_close(data.denormalize_diff_var(var_norm), emp_d, rtol=1e-2, atol=0)
+    with pytest.raises(ValueError, match="^var_norm"):
+        data.denormalize_obs_var(torch.ones(3))

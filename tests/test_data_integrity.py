@@ -10,6 +10,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -168,3 +169,76 @@ def test_cli_check_with_a_deleted_file_exits_nonzero_without_traceback(folder):
     assert "nile.csv: MISSING" in proc.stdout
     assert "build --only nile" in proc.stdout
     assert "tracking.npz: OK" in proc.stdout
+
+
+# ----------------------------------------------------------------------------- issue 24
+
+
+def test_same_size_edit_with_the_modification_time_put_back_is_noticed(folder):
+    """The verdict cache must not trust size + mtime alone: an edit of the same size whose mtime
+    is restored with os.utime (what `cp -p`, `rsync -t` or `touch -r` do) is hashed again."""
+    assert float(load("nile").obs[0, 0, 0]) == 1120.0       # verified and cached
+    path = folder / "nile.csv"
+    st = path.stat()
+    text = path.read_text()
+    time.sleep(0.02)                                         # past the file system's clock tick
+    path.write_text(text.replace(",1120", ",1121", 1))       # one digit: same size, readable, wrong
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert path.stat().st_size == st.st_size and path.stat().st_mtime_ns == st.st_mtime_ns
+    err = _expect_named_error("nile", "nile.csv")
+    assert "does not match" in str(err)
+
+
+def test_unreadable_file_gives_the_promised_data_file_error(folder):
+    """A file that exists but cannot be read is a DataFileError naming it, not a raw OSError."""
+    path = folder / "tracking.npz"
+    path.unlink()
+    path.mkdir()                                   # a folder where the file should be: unreadable as a file
+    err = _expect_named_error("tracking", "tracking.npz")
+    assert "cannot be read" in str(err)
+
+
+def test_permission_denied_gives_the_promised_data_file_error(folder, monkeypatch):
+    """No read permission (as any non-root user gets from `chmod 000`). Root may read anything, so
+    the denial is made by the file system call itself."""
+    real_open = open
+
+    def deny(file, *args, **kwargs):
+        if str(file).endswith("tracking.npz"):
+            raise PermissionError(13, "Permission denied", str(file))
+        return real_open(file, *args, **kwargs)
+
+    monkeypatch.setattr("builtins.open", deny)
+    err = _expect_named_error("tracking", "tracking.npz")
+    assert "PermissionError" in str(err)
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root reads files whatever their permission bits")
+def test_chmod_000_gives_the_promised_data_file_error(folder):
+    path = folder / "tracking.npz"
+    path.chmod(0)
+    try:
+        _expect_named_error("tracking", "tracking.npz")
+    finally:
+        path.chmod(0o644)
+
+
+def test_restore_hints_make_sense_outside_a_clone(monkeypatch, tmp_path):
+    """In a clone: git / the build command. From an installed wheel (data inside the package) and
+    with PGM_WM_DATA: no `git checkout`, which means nothing outside a clone."""
+    from pgm_wm.datasets import loader
+
+    monkeypatch.delenv("PGM_WM_DATA", raising=False)
+    monkeypatch.setattr(loader, "_package_data_dir", lambda: None)
+    assert loader.restore_command("pam_arm") == "git checkout -- data/pam_arm.npz"
+    assert loader.restore_command("tracking") == "python -m pgm_wm.datasets build --only tracking"
+    monkeypatch.setattr(loader, "_package_data_dir", lambda: tmp_path)          # an installed wheel
+    assert loader.data_dir() == tmp_path
+    assert "git" not in loader.restore_command("pam_arm")
+    assert "pip install --force-reinstall --no-deps pgm_wm" in loader.restore_command("pam_arm")
+    assert loader.restore_command("nile") == "python -m pgm_wm.datasets build --only nile"
+    monkeypatch.setenv("PGM_WM_DATA", str(tmp_path / "mine"))                    # the override wins
+    assert loader.data_dir() == tmp_path / "mine"
+    assert "git" not in loader.restore_command("pam_arm") and "PGM_WM_DATA" in loader.restore_command("pam_arm")
+    assert loader.restore_command("tracking") == (f"PGM_WM_DATA={tmp_path / 'mine'} "
+                                                  "python -m pgm_wm.datasets build --only tracking")

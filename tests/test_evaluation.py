@@ -89,11 +89,13 @@ def test_multistep_uses_no_future_observation(model_fn):
 def test_multistep_bad_inputs():
     obs = torch.randn(2, 10, 2)
     with pytest.raises(ValueError, match="context_len"):
-        multistep_predict(CountingModel(), obs, obs, 10)
+        multistep_predict(CountingModel(), obs, obs, 11)
     with pytest.raises(ValueError, match="horizon"):
-        multistep_predict(CountingModel(), obs, obs, 5, 6)
+        multistep_predict(CountingModel(), obs, obs, 10)        # no action left to predict with
+    with pytest.raises(ValueError, match="horizon"):
+        multistep_predict(CountingModel(), obs, obs, 5, 7)
     with pytest.raises(ValueError, match="actions"):
-        multistep_predict(CountingModel(), obs, obs[:, :9], 5)
+        multistep_predict(CountingModel(), obs, obs[:1], 5)
 
 
 def test_per_horizon_open_loop_metrics_match_manual_windows():
@@ -244,3 +246,22 @@ def test_trajectory_world_model_pads_to_windows_and_equals_infer_trajectory():
     assert_close(var, ref_var[:, :23])
     res = evaluate_open_loop(f, obs, act, 10)
     assert res.mean.shape == (2, 13, 3) and bool(torch.isfinite(res.rmse).all())
+
+
+def test_forecast_past_the_end_of_the_data_needs_no_dummy_observations():
+    """issue 24: the observations that exist (the context) and the planned actions are enough; the
+    result equals the old call that padded the observations with dummies."""
+    torch.manual_seed(0)
+    model = AcRKN(ObservationEncoder(2, 3, (8,)), LocallyLinearTransition(3, 2, 1), MLPControl(1, 3, (8,)),
+                  BeliefDecoder(3, 2, (8,), (8,))).double()
+    c, h = 6, 9
+    obs = torch.randn(2, c, 2, dtype=torch.float64)                 # only the context exists
+    act = torch.randn(2, c + h - 1, 1, dtype=torch.float64)         # the planned actions
+    mean, var = multistep_predict(model, obs, act, c, h)
+    dummy = torch.cat([obs, torch.full((2, h - 1, 2), 123.0, dtype=torch.float64)], 1)
+    ref_mean, ref_var = multistep_predict(model, dummy, act, c, h)
+    torch.testing.assert_close(mean, ref_mean, rtol=0, atol=0)
+    torch.testing.assert_close(var, ref_var, rtol=0, atol=0)
+    assert mean.shape == (2, h, 2)
+    with pytest.raises(ValueError, match="^actions"):
+        multistep_predict(model, obs, act[:1], c, h)

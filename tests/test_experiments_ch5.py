@@ -54,7 +54,7 @@ def _splits(n: int = 30, T: int = 4 * H) -> Splits:
         o[:, t + 1, 0] = 0.9 * o[:, t, 0] + g[:, 0] * a[:, t, 0]
         o[:, t + 1, 1] = 0.5 * o[:, t, 1] + 0.1 * rng.normal(size=n)
     parts = split_sequences(SequenceData.from_arrays(o, a), (0.6, 0.2, 0.2), seed=0)
-    return Splits(parts["train"], parts["valid"], parts["test"])
+    return Splits(*parts)
 
 
 def test_train_hiprssm_fits_on_windows_within_the_budget():

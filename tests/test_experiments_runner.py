@@ -20,7 +20,7 @@ def _linear_system(n: int = 60, T: int = 40, seed: int = 0) -> Splits:
     for t in range(T - 1):
         o[:, t + 1] = 0.9 * o[:, t] + 0.5 * a[:, t] + 0.01 * rng.normal(size=(n, 1))
     parts = split_sequences(SequenceData.from_arrays(o, a), (0.6, 0.2, 0.2), seed=0)
-    return Splits(parts["train"], parts["valid"], parts["test"])
+    return Splits(*parts)
 
 
 SPLITS = _linear_system()
@@ -132,7 +132,7 @@ def test_score_dims_score_only_those_dimensions():
     rng = np.random.default_rng(1)
     o = np.cumsum(rng.normal(size=(40, 30, 2)), axis=1) * np.array([1.0, 10.0])
     parts = split_sequences(SequenceData.from_arrays(o, rng.normal(size=(40, 30, 1))), (0.6, 0.2, 0.2), seed=0)
-    splits = Splits(parts["train"], parts["valid"], parts["test"])
+    splits = Splits(*parts)
     p_all = Protocol(context_len=5, horizon=10, horizons=(1, 10), eval_stride=15)
     p_one = replace(p_all, score_dims=(0,))
     model = RepeatLast.fit(splits.normalized("train")[0], splits.train.valid)

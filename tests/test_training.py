@@ -419,4 +419,17 @@ def test_progress_follows_the_environment(monkeypatch):
     monkeypatch.setenv("PGM_WM_PROGRESS", "1")
     assert show_progress(None) is True and show_progress(False) is False
     monkeypatch.delenv("PGM_WM_PROGRESS")
+    # unset: a bar in interactive use only (a terminal, or a Jupyter kernel), not in logs
+    import io
+    import sys
+
+    monkeypatch.delitem(sys.modules, "ipykernel", raising=False)
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    monkeypatch.setattr(sys, "stderr", io.StringIO())
+    assert show_progress(None) is False
+    monkeypatch.setattr(sys, "stderr", Terminal())
     assert show_progress(None) is True

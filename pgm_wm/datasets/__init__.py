@@ -26,8 +26,8 @@ nominal payload (:mod:`pgm_wm.datasets.oracles`).
 Every file is checked against ``data/SHA256SUMS`` before use (:class:`DataFileError`).
 
 Your own data: ``SequenceData.from_arrays(obs, actions, valid)`` checks and wraps
-numpy arrays or tensors, :func:`split_sequences` splits them by sequence (seeded,
-statistics of the training part) and :func:`compute_stats` gives masked statistics.
+numpy arrays or tensors, :func:`split_sequences` splits them by sequence into a named tuple
+``(train, valid, test)`` (seeded, statistics of the training part) and :func:`compute_stats` gives masked statistics.
 
 Regenerate every file with ``python -m pgm_wm.datasets build``.
 """
@@ -36,7 +36,7 @@ from ._io import DataFileError
 from .loader import ACTION_OPTIONS, DATASET_NAMES, SPLITS, SequenceData, data_dir, load
 from .oracles import oracle_windows
 from .pendulum import render_pendulum
-from .sequences import compute_stats, split_sequences
+from .sequences import SequenceSplits, compute_stats, split_sequences
 
-__all__ = ["load", "SequenceData", "compute_stats", "split_sequences", "DATASET_NAMES", "SPLITS", "ACTION_OPTIONS", "render_pendulum", "data_dir",
+__all__ = ["load", "SequenceData", "SequenceSplits", "compute_stats", "split_sequences", "DATASET_NAMES", "SPLITS", "ACTION_OPTIONS", "render_pendulum", "data_dir",
            "DataFileError", "oracle_windows"]

@@ -119,23 +119,37 @@ class DataFileError(ValueError):
     """
 
 
-# (resolved path, size, mtime_ns, expected digest) of files whose digest matched
-_VERIFIED: set[tuple[str, int, int, str]] = set()
+# (resolved path, device, inode, size, mtime_ns, ctime_ns, expected digest) of files whose digest
+# matched. The change time (ctime) moves on every write and on every os.utime call and cannot be
+# set back by a user, so an edit of the same size whose modification time was restored is noticed.
+_VERIFIED: set[tuple[str, int, int, int, int, int, str]] = set()
+
+
+def _stat_key(path: Path, expected: str) -> tuple[str, int, int, int, int, int, str]:
+    st = path.stat()
+    return (str(path.resolve()), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns, expected)
 
 
 def verify_file(path: str | os.PathLike, restore: str) -> Path:
     """Check ``path`` against the ``SHA256SUMS`` of its folder; return the path.
 
-    The verdict is cached by (size, modification time), so a file is hashed once
-    per process unless it changes. ``restore`` is the command quoted in the error.
+    The verdict is cached by the file's identity and status (inode, size, modification and
+    change times), so a file is hashed once per process unless it changes; any write, even one
+    that keeps the size and puts the modification time back, changes the change time.
+    ``restore`` is the command quoted in the error.
 
     Raises:
         FileNotFoundError: the file does not exist (the message quotes ``restore``).
-        DataFileError: ``SHA256SUMS`` is missing or does not list the file, or the
-            file's SHA-256 differs from the listed one.
+        DataFileError: ``SHA256SUMS`` is missing or does not list the file, the file's SHA-256
+            differs from the listed one, or the file cannot be read (no permission, a folder, ...).
     """
     path = Path(path)
-    if not path.exists():
+    try:
+        exists = path.exists()
+    except OSError as err:  # e.g. a folder on the way without search permission
+        raise DataFileError(f"{path}: cannot be read ({type(err).__name__}: {err}); "
+                            f"restore it with `{restore}`") from err
+    if not exists:
         raise FileNotFoundError(f"{path} not found; restore it with `{restore}`")
     try:
         sums = read_sha256sums(path.parent)
@@ -145,11 +159,14 @@ def verify_file(path: str | os.PathLike, restore: str) -> Path:
     expected = sums.get(path.name)
     if expected is None:
         raise DataFileError(f"{path}: not listed in {path.parent / 'SHA256SUMS'}; restore it with `{restore}`")
-    st = path.stat()
-    key = (str(path.resolve()), st.st_size, st.st_mtime_ns, expected)
-    if key in _VERIFIED:
-        return path
-    actual = sha256_file(path)
+    try:
+        key = _stat_key(path, expected)
+        if key in _VERIFIED:
+            return path
+        actual = sha256_file(path)
+    except OSError as err:  # PermissionError, IsADirectoryError, an I/O error
+        raise DataFileError(f"{path}: cannot be read ({type(err).__name__}: {err}); "
+                            f"restore it with `{restore}`") from err
     if actual != expected:
         raise DataFileError(
             f"{path}: SHA-256 {actual[:16]}... does not match {expected[:16]}... in SHA256SUMS "

@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import os
 import tokenize
+from importlib import resources
 import zipfile
 import zlib
 from pathlib import Path
@@ -71,12 +72,37 @@ FILENAMES: dict[str, str] = {name: f"{name}.npz" for name in DATASET_NAMES}
 FILENAMES["nile"] = "nile.csv"
 
 
+def _package_data_dir() -> Path | None:
+    """``<package>/data`` of an installed wheel (the build copies ``data/`` there), else ``None``."""
+    folder = resources.files("pgm_wm") / "data"
+    if isinstance(folder, Path) and (folder / "SHA256SUMS").is_file():
+        return folder
+    return None
+
+
+def _clone_data_dir() -> Path:
+    """``<repo>/data`` next to the package folder of a clone (editable install or ``PYTHONPATH``)."""
+    return Path(__file__).resolve().parent.parent.parent / "data"
+
+
 def data_dir() -> Path:
-    """Folder holding the bundled files: ``$PGM_WM_DATA`` if set, else ``<repo>/data``."""
+    """Folder holding the bundled files: ``$PGM_WM_DATA`` if set; else the package's own ``data``
+    folder (read with :mod:`importlib.resources`; present after ``pip install``); else the
+    ``data/`` folder of the clone the package is imported from."""
     env = os.environ.get("PGM_WM_DATA")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parent.parent.parent / "data"
+    packaged = _package_data_dir()
+    if packaged is not None:
+        return packaged
+    return _clone_data_dir()
+
+
+def _data_origin() -> str:
+    """Where :func:`data_dir` points: ``"env"``, ``"package"`` or ``"clone"``."""
+    if os.environ.get("PGM_WM_DATA"):
+        return "env"
+    return "package" if _package_data_dir() is not None else "clone"
 
 
 # --------------------------------------------------------------------------- reading
@@ -100,14 +126,28 @@ def _check_name_split(name: str, split: str, action: str | None) -> None:
 
 
 def restore_command(name: str) -> str:
-    """The shell command that rewrites the bundled file of dataset ``name``."""
-    if name == "pam_arm":  # real data: rebuilt only from its source (see data/README.md)
-        return f"git checkout -- data/{FILENAMES[name]}"
-    return f"python -m pgm_wm.datasets build --only {name}"
+    """The command that restores the bundled file of dataset ``name`` where :func:`data_dir` points.
+
+    Simulated datasets and the Nile CSV are rewritten by ``python -m pgm_wm.datasets build``;
+    the real ``pam_arm`` recordings only come back from a clone (``git checkout``) or by
+    reinstalling the package (the wheel carries the file)."""
+    build = f"python -m pgm_wm.datasets build --only {name}"
+    origin = _data_origin()
+    if name == "pam_arm":  # real data: converted only from its source archive (see data/README.md)
+        if origin == "clone":
+            return f"git checkout -- data/{FILENAMES[name]}"
+        reinstall = "pip install --force-reinstall --no-deps pgm_wm  (the wheel carries data/pam_arm.npz)"
+        if origin == "env":
+            return (f"copy pam_arm.npz and its SHA256SUMS line from a pgm_wm clone's data/ folder into "
+                    f"$PGM_WM_DATA, or unset PGM_WM_DATA to use the package's copy; or {reinstall}")
+        return reinstall
+    if origin == "env":
+        return f"PGM_WM_DATA={data_dir()} {build}"
+    return build
 
 
 def _path(name: str) -> Path:
-    """Path of the file of ``name``, verified against ``SHA256SUMS`` (cached by size and mtime)."""
+    """Path of the file of ``name``, verified against ``SHA256SUMS`` (cached while the file is unchanged)."""
     return verify_file(data_dir() / FILENAMES[name], restore_command(name))
 
 
@@ -221,7 +261,8 @@ _STATS_CACHE: dict[tuple, dict[str, np.ndarray]] = {}
 
 def _train_stats(name: str, action: str | None, train_pieces: dict[str, Any] | None) -> dict[str, np.ndarray]:
     path = _path(name)
-    key = (name, action, str(path), path.stat().st_mtime_ns, path.stat().st_size)
+    st = path.stat()
+    key = (name, action, str(path), st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
     if key not in _STATS_CACHE:
         if train_pieces is None:
             train_pieces, _ = _assemble_numpy(name, "train", action)

@@ -19,8 +19,10 @@ bundled datasets.
 
 from __future__ import annotations
 
+import collections
+import keyword
 from dataclasses import dataclass, field, replace
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping, NamedTuple, Sequence
 
 import numpy as np
 import torch
@@ -28,7 +30,7 @@ from torch import Tensor
 
 from .._checks import check_last_dims
 
-__all__ = ["SequenceData", "compute_stats", "split_sequences", "STD_FLOOR"]
+__all__ = ["SequenceData", "SequenceSplits", "compute_stats", "split_sequences", "STD_FLOOR"]
 
 #: Standard deviations below this are raised to it, so normalising never divides by zero.
 STD_FLOOR = 1e-6
@@ -335,6 +337,12 @@ class SequenceData:
         self._check("obs_norm", obs_norm, self.obs_dim)
         return obs_norm * self._stat("obs_std", obs_norm) + self._stat("obs_mean", obs_norm)
 
+    def denormalize_obs_var(self, var_norm: Tensor) -> Tensor:
+        """A predicted variance of normalized observations in original units, ``(..., d_obs)``:
+        ``var_norm * obs_std**2`` (the variance of :meth:`denormalize_obs` of the prediction)."""
+        self._check("var_norm", var_norm, self.obs_dim)
+        return var_norm * self._stat("obs_std", var_norm).square()
+
     def normalize_actions(self, actions: Tensor) -> Tensor:
         """``(..., d_act) -> (..., d_act)``: ``(actions - act_mean) / act_std``."""
         self._check("actions", actions, self.action_dim)
@@ -354,6 +362,12 @@ class SequenceData:
         """Inverse of :meth:`normalize_diff`, ``(..., d_obs)``."""
         self._check("diff_norm", diff_norm, self.obs_dim)
         return diff_norm * self._stat("diff_std", diff_norm) + self._stat("diff_mean", diff_norm)
+
+    def denormalize_diff_var(self, var_norm: Tensor) -> Tensor:
+        """A predicted variance of normalized differences in original units, ``(..., d_obs)``:
+        ``var_norm * diff_std**2``."""
+        self._check("var_norm", var_norm, self.obs_dim)
+        return var_norm * self._stat("diff_std", var_norm).square()
 
     def __repr__(self) -> str:
         def shape(t: Tensor | None) -> str:
@@ -401,9 +415,57 @@ def split_indices(n: int, fractions: Sequence[float], seed: int) -> list[np.ndar
     return [np.sort(perm[bounds[i]:bounds[i + 1]]) for i in range(len(sizes))]
 
 
+class _ByName:
+    """Dict-style access on a named tuple of splits: ``parts["train"]``, ``keys()``, ``values()``,
+    ``items()`` (what :func:`split_sequences` returned before it returned a named tuple)."""
+
+    __slots__ = ()
+
+    def __getitem__(self, key: Any) -> Any:
+        if isinstance(key, str):
+            if key not in self._fields:  # type: ignore[attr-defined]
+                raise KeyError(key)
+            return getattr(self, key)
+        return tuple.__getitem__(self, key)  # type: ignore[arg-type]
+
+    def keys(self) -> tuple[str, ...]:
+        return tuple(self._fields)  # type: ignore[attr-defined]
+
+    def values(self) -> tuple[SequenceData, ...]:
+        return tuple(self)  # type: ignore[arg-type]
+
+    def items(self) -> tuple[tuple[str, SequenceData], ...]:
+        return tuple(zip(self._fields, self))  # type: ignore[attr-defined, call-overload]
+
+
+class _TrainValidTest(NamedTuple):
+    train: SequenceData
+    valid: SequenceData
+    test: SequenceData
+
+
+class SequenceSplits(_ByName, _TrainValidTest):
+    """``(train, valid, test)`` from :func:`split_sequences`: unpack it
+    (``train, valid, test = split_sequences(data)``), use the fields (``parts.valid``) or the
+    names (``parts["valid"]``)."""
+
+    __slots__ = ()
+
+
+def _splits_type(names: Sequence[str]) -> type:
+    if tuple(names) == SequenceSplits._fields:
+        return SequenceSplits
+    base = collections.namedtuple("SequenceParts", names)  # type: ignore[misc]
+    return type("SequenceParts", (_ByName, base), {"__slots__": (), "__module__": __name__})
+
+
 def split_sequences(data: SequenceData, fractions: Sequence[float] = (0.7, 0.15, 0.15), seed: int = 0,
-                    names: Sequence[str] = ("train", "valid", "test")) -> dict[str, SequenceData]:
+                    names: Sequence[str] = ("train", "valid", "test")) -> SequenceSplits:
     """Split ``data`` by sequence into seeded, disjoint parts that together cover it.
+
+    Returns a named tuple in the order of ``names``: with the default names a
+    :class:`SequenceSplits` ``(train, valid, test)``, so ``train, valid, test =
+    split_sequences(data)`` unpacks the parts; ``parts["valid"]`` and ``parts.items()`` work too.
 
     The first part is the training split: every part gets the statistics of the
     first part (:func:`compute_stats` over its valid steps), so nothing of the
@@ -412,8 +474,8 @@ def split_sequences(data: SequenceData, fractions: Sequence[float] = (0.7, 0.15,
 
     Raises:
         ValueError: ``data`` is not a :class:`SequenceData`, ``fractions`` are not
-            positive and summing to 1, ``names`` do not match ``fractions`` or repeat,
-            or there are fewer sequences than parts.
+            positive and summing to 1, ``names`` do not match ``fractions``, repeat or are not
+            Python identifiers, or there are fewer sequences than parts.
     """
     if not isinstance(data, SequenceData):
         raise ValueError(f"data: expected a SequenceData, got {type(data).__name__}")
@@ -421,6 +483,9 @@ def split_sequences(data: SequenceData, fractions: Sequence[float] = (0.7, 0.15,
     names = list(names)
     if len(names) != len(fractions) or len(set(names)) != len(names):
         raise ValueError(f"names: expected {len(fractions)} distinct names (one per fraction), got {names}")
+    if not all(isinstance(n, str) and n.isidentifier() and not n.startswith("_") and not keyword.iskeyword(n)
+               for n in names):
+        raise ValueError(f"names: each name must be a Python identifier not starting with '_', got {names}")
     if not isinstance(seed, (int, np.integer)):
         raise ValueError(f"seed: expected an int, got {type(seed).__name__}")
     parts = split_indices(data.n_sequences, fractions, int(seed))
@@ -430,10 +495,10 @@ def split_sequences(data: SequenceData, fractions: Sequence[float] = (0.7, 0.15,
     stats = _stats_numpy(data.obs[train].double().numpy(), actions, data.valid[train].numpy(),
                          with_diff=with_diff and data.seq_len >= 2)
     stats_t = {k: torch.tensor(v, dtype=data.obs.dtype) for k, v in stats.items()}
-    out = {}
+    out = []
     for name, idx in zip(names, parts):
         part = replace(data.subset(idx, split=name), stats=stats_t)
         part.meta["split_info"] = {"n": int(len(idx)), "T": data.seq_len, "seed": int(seed),
                                    "fractions": [float(f) for f in fractions], "indices": idx.tolist()}
-        out[name] = part
-    return out
+        out.append(part)
+    return _splits_type(names)(*out)

@@ -1,34 +1,75 @@
-"""``python -m pgm_wm.experiments NAME [--seeds 5] [--budget 60] [--jobs 2]``: run a chapter's
-multi-seed experiment and write ``results/NAME.json`` (see :mod:`pgm_wm.experiments.runner`)."""
+"""``python -m pgm_wm.experiments NAME [--seeds 5] [--budget 60] [--jobs 2] [--models A B] [--out F] [--force]``:
+run a chapter's multi-seed experiment and write ``results/NAME.json`` (see
+:mod:`pgm_wm.experiments.runner`). Every argument and the output path are checked before any
+training; the file is written atomically; a committed results file is only replaced with
+``--force``."""
 
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import sys
 from pathlib import Path
 
 from .chapters import EXPERIMENTS
-from .results import conclusions, provenance_text, summary_table
+from .results import check_output_path, conclusions, provenance_text, summary_table
 from .runner import run_experiment
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from err
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def _budget(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"expected CPU seconds, got {text!r}") from err
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive finite number of CPU seconds, got {text!r}")
+    return value
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pgm_wm.experiments", description=__doc__)
     parser.add_argument("name", choices=sorted(EXPERIMENTS), help="which chapter's experiment")
-    parser.add_argument("--seeds", type=int, default=5, help="number of seeds (0, 1, ...); default 5")
-    parser.add_argument("--budget", type=float, default=60.0, help="CPU seconds of training per model and seed")
-    parser.add_argument("--jobs", type=int, default=1, help="parallel processes (each one thread)")
-    parser.add_argument("--models", nargs="*", default=None, help="only these models (default: all)")
+    parser.add_argument("--seeds", type=_positive_int, default=5, help="number of seeds (0, 1, ...); default 5")
+    parser.add_argument("--budget", type=_budget, default=60.0, help="CPU seconds of training per model and seed")
+    parser.add_argument("--jobs", type=_positive_int, default=1,
+                        help=f"parallel processes (each one thread); at most {os.cpu_count() or 1} here")
+    parser.add_argument("--models", nargs="+", default=None, help="only these models (default: all)")
     parser.add_argument("--out", default=None, help="output file (default results/<experiment>.json)")
+    parser.add_argument("--force", action="store_true", help="overwrite a committed results file")
     args = parser.parse_args(argv)
-    if args.seeds < 1:
-        parser.error("--seeds: need at least 1")
+    if args.jobs > (os.cpu_count() or 1):
+        parser.error(f"argument --jobs: {args.jobs} processes but this machine has {os.cpu_count()} CPUs")
     exp = EXPERIMENTS[args.name]()
+    if args.models is not None:
+        unknown = [m for m in args.models if m not in exp.models]
+        if unknown:
+            parser.error(f"argument --models: unknown model(s) {', '.join(map(repr, unknown))}; known: "
+                         f"{', '.join(map(repr, exp.models))}")
+        if len(set(args.models)) != len(args.models):
+            parser.error("argument --models: a model is named twice")
     out = args.out or str(Path(__file__).resolve().parents[2] / "results" / f"{exp.name}.json")
+    try:
+        check_output_path(out, force=args.force)
+    except ValueError as err:
+        parser.error(f"argument --out: {err}")
     res = run_experiment(exp, list(range(args.seeds)), args.budget, out, jobs=args.jobs, models=args.models)
     print(summary_table(res))
-    for sentence in conclusions(res):
-        print("-", sentence)
+    if len(res["models"]) >= 2:
+        for sentence in conclusions(res):
+            print("-", sentence)
+    else:
+        print("- one model only: no comparison to state")
     print(provenance_text(res))
     print(f"written: {out}")
     return 0

@@ -41,6 +41,8 @@ __all__ = [
     "provenance_text",
     "results_path",
     "report",
+    "check_output_path",
+    "is_committed",
 ]
 
 _REPO = Path(__file__).resolve().parents[2]
@@ -123,7 +125,50 @@ def save_results(path: str | os.PathLike, results: Mapping[str, Any]) -> Path:
 
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    p.write_text(json.dumps(clean(results), indent=1) + "\n")
+    text = json.dumps(clean(results), indent=1) + "\n"
+    # atomic: a failed write leaves the old file as it was, never half a JSON document
+    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, p)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return p
+
+
+def is_committed(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a file tracked by the git repository it lies in (False outside one)."""
+    p = Path(path).resolve()
+    if not p.is_file():
+        return False
+    try:
+        out = subprocess.run(["git", "ls-files", "--error-unmatch", p.name], cwd=p.parent, capture_output=True,
+                             text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return False
+    return out.returncode == 0
+
+
+def check_output_path(path: str | os.PathLike, force: bool = False) -> Path:
+    """Check, before any training, that a results file can be written at ``path``.
+
+    Raises ``ValueError`` (``"out: ..."``) when the path is a folder, its folder cannot be created
+    or written, or it is a results file committed to git and ``force`` is False (a smoke run must
+    not replace the committed numbers by accident)."""
+    p = Path(path)
+    if p.is_dir():
+        raise ValueError(f"out: {p} is a folder; give a file name")
+    if p.exists() and is_committed(p) and not force:
+        raise ValueError(f"out: {p} is a committed results file; pass --force to overwrite it, or --out "
+                         f"another file")
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        probe = p.with_name(f".{p.name}.{os.getpid()}.probe")
+        probe.write_text("")
+        probe.unlink()
+    except OSError as err:
+        raise ValueError(f"out: cannot write into {p.parent} ({type(err).__name__}: {err})") from err
     return p
 
 

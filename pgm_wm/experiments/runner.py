@@ -32,7 +32,7 @@ from torch import Tensor, nn
 
 from ..evaluation import multistep_predict, sliding_windows
 from ..training import fit, imputation_loss_fn, set_seed
-from .results import provenance, save_results
+from .results import check_output_path, provenance, save_results
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..datasets import SequenceData
@@ -280,10 +280,18 @@ def run_experiment(exp: Experiment, seeds: Sequence[int], budget_s: float, out_p
     seconds and one thread either way."""
     if len(seeds) < 1:
         raise ValueError("seeds: need at least one seed")
+    if not (isinstance(budget_s, (int, float)) and math.isfinite(budget_s) and budget_s > 0):
+        raise ValueError(f"budget_s: must be a positive finite number of CPU seconds, got {budget_s!r}")
+    if not isinstance(jobs, int) or isinstance(jobs, bool) or jobs < 1:
+        raise ValueError(f"jobs: must be an int >= 1, got {jobs!r}")
     names = list(exp.models) if models is None else list(models)
+    if not names:
+        raise ValueError("models: need at least one model")
     for n in names:
         if n not in exp.models:
             raise ValueError(f"models: unknown model {n!r} (known: {', '.join(exp.models)})")
+    if out_path is not None:  # before any training: a path that cannot be written fails now
+        check_output_path(out_path, force=True)
     tasks = [(n, s, budget_s) for n in names for s in (seeds if exp.models[n].trained else seeds[:1])]
     t0 = time.perf_counter()
     # commit, date and machine are recorded when the run starts; the wall time when it ends
