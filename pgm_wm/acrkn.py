@@ -220,7 +220,7 @@ class NormBoundedTransition(nn.Module):
         return M / torch.clamp(norms / self.max_norm, min=1.0)[:, None, None]
 
     def band_parameters(self) -> BandParameters:
-        """The bounded transition in the band storage of the compiled filter: the rescaled
+        r"""The bounded transition in the band storage of the compiled filter: the rescaled
         :math:`\tilde M_k` (identity included) at the band pairs, nothing added."""
         base = self.base.band_parameters()
         M, m = self.scaled_basis(), self.latent_obs_dim
