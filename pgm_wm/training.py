@@ -419,6 +419,7 @@ def fit(
     valid_every: int | None = None,
     checkpoint: str | os.PathLike | None = None,
     device: torch.device | str | None = None,
+    max_steps: int | None = None,
 ) -> FitHistory:
     """Minimize ``loss_fn`` with Adam over minibatches; the package's only training loop.
 
@@ -459,6 +460,8 @@ def fit(
             file written for other parameters is an error.
         device: move the model and every batch to this device (``"auto"``: CUDA where present);
             ``None`` leaves everything where it is.
+        max_steps: stop after this many optimizer steps (with or without a budget; an equal
+            number of gradient steps for every model, instead of equal CPU seconds).
 
     The learning curve (:attr:`FitHistory.curve`) records steps, epochs, CPU and wall seconds,
     and the training and validation losses at every validation.
@@ -485,8 +488,8 @@ def fit(
             raise ValueError("train_tensors: the training set is empty (0 sequences), so there is no batch to train on")
     if not isinstance(batch_size, int) or batch_size <= 0:
         raise ValueError(f"batch_size: must be a positive int, got {batch_size!r}")
-    if epochs is None and budget_s is None:
-        raise ValueError("epochs: give an epoch cap, a CPU-second budget_s, or both")
+    if epochs is None and budget_s is None and max_steps is None:
+        raise ValueError("epochs: give an epoch cap, a CPU-second budget_s or max_steps")
     if epochs is not None and (not isinstance(epochs, int) or epochs < 0):
         raise ValueError(f"epochs: must be an int >= 0 or None, got {epochs!r}")
     if budget_s is not None and not (isinstance(budget_s, (int, float)) and math.isfinite(budget_s) and budget_s > 0):
@@ -499,6 +502,8 @@ def fit(
         raise ValueError(f"patience: needs valid_fn and a positive int, got {patience!r}")
     if valid_every is not None and (valid_fn is None or not isinstance(valid_every, int) or valid_every <= 0):
         raise ValueError(f"valid_every: needs valid_fn and a positive int, got {valid_every!r}")
+    if max_steps is not None and (not isinstance(max_steps, int) or isinstance(max_steps, bool) or max_steps <= 0):
+        raise ValueError(f"max_steps: must be a positive int or None, got {max_steps!r}")
     if keep_best is None:
         keep_best = valid_fn is not None
     if keep_best and valid_fn is None:
@@ -526,7 +531,9 @@ def fit(
                 for p, s in zip(params, state):
                     p.copy_(s)
 
-    opt = torch.optim.Adam(params, lr=lr, weight_decay=weight_decay)
+    # fused: one kernel for all parameters (~4x less time per step than the per-tensor loop for
+    # the chapters' models, which have dozens of small parameter tensors); same algorithm
+    opt = torch.optim.Adam(params, lr=lr, weight_decay=weight_decay, fused=all(q.is_floating_point() for q in params))
     gen = torch.Generator().manual_seed(int(seed))
     hist = FitHistory()
     best, best_state, since_best, n_steps, epoch, used_before = float("inf"), None, 0, 0, 0, 0.0
@@ -630,7 +637,7 @@ def fit(
                     bar.update(1)
                 else:
                     bar.update(max(0.0, min(round(used, 1), total) - bar.n))
-                if budget_s is not None and used >= budget_s:
+                if (budget_s is not None and used >= budget_s) or (max_steps is not None and n_steps >= max_steps):
                     out_of_budget = True
                 if valid_every is not None and n_steps % valid_every == 0:
                     stop = validate(epoch)

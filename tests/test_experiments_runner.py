@@ -111,10 +111,11 @@ def test_a_model_with_its_own_training_gets_the_same_budget_seed_and_validation(
 
     calls = {}
 
-    def own_train(model, splits, protocol, seed, budget_s, valid_fn):
+    def own_train(model, splits, protocol, seed, budget_s, valid_fn, max_steps=None):
         calls.update(seed=seed, budget=budget_s, protocol=protocol, valid=valid_fn(),
                      reference=validation_rmse(model, splits, protocol))
-        return FitHistory(train_loss=[1.0, 0.9, 0.8], valid_loss=[calls["valid"]])
+        curve = [{"step": 30, "epoch": 2, "cpu_s": 0.1, "wall_s": 0.1, "valid": calls["valid"], "train": 0.8}]
+        return FitHistory(train_loss=[1.0, 0.9, 0.8], valid_loss=[calls["valid"]], curve=curve)
 
     spec = ModelSpec(lambda s: build_baseline("gru", 1, 1, hidden=8, predict_differences=False), train=own_train)
     exp = Experiment("tiny", "tiny", lambda: SPLITS, {"own": spec}, PROTOCOL)
@@ -122,6 +123,7 @@ def test_a_model_with_its_own_training_gets_the_same_budget_seed_and_validation(
     assert calls["seed"] == 4 and calls["budget"] == 0.7 and calls["protocol"] is PROTOCOL
     assert calls["valid"] == pytest.approx(calls["reference"])          # the generic validation windows
     assert info["epochs"] == 3 and info["best_valid"] == calls["valid"]
+    assert info["steps"] == 30 and info["curve"][0]["valid"] == calls["valid"]
 
 
 def test_score_dims_score_only_those_dimensions():
@@ -167,3 +169,113 @@ def test_validation_choice_uses_validation_scores_only():
     res["models"]["r"] = {"runs": [{"epochs": 0}], "sq_err": np.zeros((1, 1, 3))}
     with pytest.raises(ValueError, match="^variants"):
         validation_choice(res, ["a", "r"])
+
+
+# ----------------------------------------------------------------------------- convergence protocol
+def test_improvement_over_the_last_doubling_against_its_definition():
+    from pgm_wm.experiments.runner import CONVERGENCE_TOL, improvement_over_last_doubling
+
+    curve = [{"cpu_s": c, "valid": v} for c, v in ((1, 1.0), (4, 0.5), (5, 0.6), (9, 0.45), (10, 0.49))]
+    # best by 5 s: 0.5; best by 10 s: 0.45 -> 10 % improvement over the last doubling
+    assert improvement_over_last_doubling(curve, 10.0) == pytest.approx(0.1)
+    assert improvement_over_last_doubling(curve, 8.0) == pytest.approx(0.0)      # best by 4 and by 8: 0.5
+    assert improvement_over_last_doubling(curve, 1.0) == float("inf")           # nothing by 0.5 s
+    assert np.isnan(improvement_over_last_doubling(curve, 0.5))                  # nothing at all
+    inf = [{"cpu_s": 1, "valid": float("inf")}, {"cpu_s": 2, "valid": 0.3}]
+    assert improvement_over_last_doubling(inf, 2.0) == float("inf")
+    assert 0 < CONVERGENCE_TOL < 0.1
+
+
+def test_thinned_curve_keeps_the_ends_every_new_best_and_every_test_checkpoint():
+    from pgm_wm.experiments.runner import _thin
+
+    rng = np.random.default_rng(0)
+    curve = [{"step": 10 * i, "cpu_s": 0.1 * i, "valid": float(1 / (i + 1) + 0.05 * rng.random())}
+             for i in range(1, 2000)]
+    for i in (5, 700, 1500):
+        curve[i]["test"] = 1.0
+    kept = _thin(curve, n=40)
+    assert kept[0] == curve[0] and kept[-1] == curve[-1] and len(kept) < len(curve) / 4
+    assert sum("test" in e for e in kept) == 3
+    best, bests = np.inf, []
+    for e in curve:
+        if e["valid"] < best:
+            best = e["valid"]
+            bests.append(e["step"])
+    assert set(bests) <= {e["step"] for e in kept}
+
+
+def _tiny_gru_experiment(checkpoints=(0.0, 0.05)):
+    from dataclasses import replace
+
+    from pgm_wm.builders import build_baseline
+
+    p = replace(PROTOCOL, valid_every=2, curve_checkpoints_s=checkpoints)
+    models = {"gru": ModelSpec(lambda s: build_baseline("gru", 1, 1, hidden=8, predict_differences=False)),
+              **_references()}
+    return Experiment("tiny", "tiny", lambda: SPLITS, models, p)
+
+
+def test_train_model_records_a_learning_curve_steps_and_the_verdict():
+    from pgm_wm.experiments.runner import improvement_over_last_doubling, train_model
+
+    exp = _tiny_gru_experiment()
+    _, info = train_model(exp, "gru", seed=0, budget_s=1e6, max_steps=9)
+    assert info["steps"] == 9 and info["epochs"] >= 1
+    steps = [e["step"] for e in info["curve"]]
+    assert steps == [2, 4, 6, 8, 9]                                   # every valid_every steps and the end
+    assert "test" in info["curve"][0] and all(np.isfinite(e["valid"]) for e in info["curve"])
+    assert info["best_valid"] == min(e["valid"] for e in info["curve"])
+    assert info["improvement_last_doubling"] == improvement_over_last_doubling(info["curve"], 1e6)
+    assert info["converged"] == (info["improvement_last_doubling"] < 0.02)
+
+
+def test_equal_steps_runs_are_reproducible_and_seed_parts_merge_to_the_whole(tmp_path):
+    from pgm_wm.experiments.results import check_study, merge_results
+
+    exp = _tiny_gru_experiment()
+    whole = run_experiment(exp, [0, 1], 1e6, jobs=1, log=lambda s: None, max_steps=6)
+    a = run_experiment(exp, [1], 1e6, jobs=1, log=lambda s: None, max_steps=6)
+    b = run_experiment(exp, [0], 1e6, jobs=1, log=lambda s: None, max_steps=6)
+    merged = merge_results([a, b])
+    assert merged["provenance"]["seeds"] == [0, 1]
+    for name in whole["models"]:
+        np.testing.assert_allclose(merged["models"][name]["sq_err"], whole["models"][name]["sq_err"], rtol=1e-6)
+    assert [r["steps"] for r in merged["models"]["gru"]["runs"]] == [6, 6]
+    check_study(merged, min_seeds=2)
+    with pytest.raises(ValueError, match="seeds"):
+        check_study(merged, min_seeds=3)
+    with pytest.raises(ValueError, match="overlap"):
+        merge_results([a, a])
+    broken = {**merged, "models": {**merged["models"], "gru": {**merged["models"]["gru"], "runs": [
+        {k: v for k, v in r.items() if k != "curve"} for r in merged["models"]["gru"]["runs"]]}}}
+    with pytest.raises(ValueError, match="curve"):
+        check_study(broken, min_seeds=2)
+
+
+def test_package_source_hash_tracks_the_source_and_the_note_says_so(tmp_path):
+    import shutil
+
+    import pgm_wm
+    from pgm_wm.experiments.results import package_note, package_source_hash, provenance
+
+    src = tmp_path / "pgm_wm"
+    shutil.copytree(pgm_wm.__path__[0], src, ignore=shutil.ignore_patterns("__pycache__"))
+    h0 = package_source_hash(src)
+    assert h0 == package_source_hash()
+    (src / "rkn.py").write_text((src / "rkn.py").read_text() + "\n# a change\n")
+    assert package_source_hash(src) != h0
+    here = {"provenance": provenance()}
+    assert here["provenance"]["package_hash"] == h0 and package_note(here) is None
+    other = {"provenance": {**here["provenance"], "package_hash": "0" * 64}}
+    assert "differs" in package_note(other)
+    assert "did not record" in package_note({"provenance": {"date": "then"}})
+
+
+def test_cli_seed_start_and_merge(tmp_path):
+    from pgm_wm.experiments.__main__ import main
+
+    with pytest.raises(SystemExit):
+        main(["ch4", "--seeds", "1", "--seed-start", "-1", "--out", str(tmp_path / "x.json")])
+    with pytest.raises(SystemExit):
+        main(["merge", str(tmp_path / "m.json"), str(tmp_path / "missing.json")])

@@ -1,6 +1,7 @@
-"""``python -m pgm_wm.experiments NAME [--seeds 5] [--budget 60] [--jobs 2] [--models A B] [--out F] [--force]``:
-run a chapter's multi-seed experiment and write ``results/NAME.json`` (see
-:mod:`pgm_wm.experiments.runner`). Every argument and the output path are checked before any
+"""``python -m pgm_wm.experiments NAME [--seeds 5] [--seed-start 0] [--budget 60] [--jobs 2] [--models A B]
+[--max-steps N] [--out F] [--force]``: run a chapter's multi-seed experiment and write
+``results/NAME.json`` (see :mod:`pgm_wm.experiments.runner`); ``python -m pgm_wm.experiments merge
+OUT PART...`` merges parts run with different seeds. Every argument and the output path are checked before any
 training; the file is written atomically; a committed results file is only replaced with
 ``--force``."""
 
@@ -13,7 +14,8 @@ import sys
 from pathlib import Path
 
 from .chapters import EXPERIMENTS
-from .results import check_output_path, conclusions, provenance_text, summary_table
+from .results import (check_output_path, conclusions, load_results, merge_results, provenance_text, save_results,
+                      summary_table, training_table)
 from .runner import run_experiment
 
 
@@ -37,10 +39,36 @@ def _budget(text: str) -> float:
     return value
 
 
+def merge_main(argv: list[str]) -> int:
+    """``python -m pgm_wm.experiments merge OUT PART PART ... [--force]``: one results file from
+    runs of the same study with different seeds (:func:`pgm_wm.experiments.results.merge_results`)."""
+    parser = argparse.ArgumentParser(prog="python -m pgm_wm.experiments merge", description=merge_main.__doc__)
+    parser.add_argument("out", help="the merged results file")
+    parser.add_argument("parts", nargs="+", help="results files of the same study, disjoint seeds")
+    parser.add_argument("--force", action="store_true", help="overwrite a committed results file")
+    args = parser.parse_args(argv)
+    try:
+        check_output_path(args.out, force=args.force)
+        merged = merge_results([load_results(p) for p in args.parts])
+    except ValueError as err:
+        parser.error(str(err))
+    save_results(args.out, merged)
+    print(f"merged {len(args.parts)} files, seeds {merged['provenance']['seeds']}: {args.out}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] == "merge":
+        return merge_main(argv[1:])
     parser = argparse.ArgumentParser(prog="python -m pgm_wm.experiments", description=__doc__)
     parser.add_argument("name", choices=sorted(EXPERIMENTS), help="which chapter's experiment")
-    parser.add_argument("--seeds", type=_positive_int, default=5, help="number of seeds (0, 1, ...); default 5")
+    parser.add_argument("--seeds", type=_positive_int, default=5, help="number of seeds; default 5")
+    parser.add_argument("--seed-start", type=int, default=0,
+                        help="first seed (default 0): --seeds 3 --seed-start 5 runs seeds 5, 6, 7 (merge the parts "
+                             "with `python -m pgm_wm.experiments merge`)")
+    parser.add_argument("--max-steps", type=_positive_int, default=None,
+                        help="also stop every model after this many optimizer steps (equal-steps comparison)")
     parser.add_argument("--budget", type=_budget, default=60.0, help="CPU seconds of training per model and seed")
     parser.add_argument("--jobs", type=_positive_int, default=1,
                         help=f"parallel processes (each one thread); at most {os.cpu_count() or 1} here")
@@ -63,8 +91,12 @@ def main(argv: list[str] | None = None) -> int:
         check_output_path(out, force=args.force)
     except ValueError as err:
         parser.error(f"argument --out: {err}")
-    res = run_experiment(exp, list(range(args.seeds)), args.budget, out, jobs=args.jobs, models=args.models)
+    if args.seed_start < 0:
+        parser.error("argument --seed-start: must be >= 0")
+    seeds = list(range(args.seed_start, args.seed_start + args.seeds))
+    res = run_experiment(exp, seeds, args.budget, out, jobs=args.jobs, models=args.models, max_steps=args.max_steps)
     print(summary_table(res))
+    print(training_table(res))
     if len(res["models"]) >= 2:
         for sentence in conclusions(res):
             print("-", sentence)

@@ -90,7 +90,7 @@ def ch4_experiment(dataset: str = "memory_arm", oracle: bool = True) -> Experime
         "FFNN": ModelSpec(lambda s: build_baseline("ffnn", *_dims(s), **_readout(s))),
     }
     protocol = Protocol(context_len=50, horizon=50, horizons=(1, 5, 10, 25, 50), eval_stride=50,
-                        valid_stride=100, batch_size=32, keep_prob=0.25, open_loop_prob=0.5)
+                        valid_stride=100, batch_size=32, keep_prob=0.25, open_loop_prob=0.5, valid_every=25)
     models.update(_reference_models(protocol))
     if oracle:
         models.update(_oracle_models(dataset, ("true",) if dataset in ("memory_arm", "hysteresis_arm") else
@@ -117,7 +117,7 @@ class HiPRSSMWindowModel(nn.Module):
 
 
 def train_hiprssm(model: HiPRSSMWindowModel, s: Splits, p: Protocol, seed: int, budget_s: float,
-                  valid_fn: Callable[[], float]) -> FitHistory:
+                  valid_fn: Callable[[], float], max_steps: int | None = None) -> FitHistory:
     """The HiP-RSSM's own training under the experiment's protocol: windows of ``H`` steps of the
     training split (:func:`pgm_wm.datasets.windows.make_windows`), each with the previous window as
     its (fully observed) context set; inside the window the first ``context_len - H`` steps are
@@ -134,7 +134,8 @@ def train_hiprssm(model: HiPRSSMWindowModel, s: Splits, p: Protocol, seed: int, 
     w = make_windows(obs, act, H, val, None, model.diff_shift, model.diff_scale)
     loss_fn = imputation_loss_fn(model.hip, p.keep_prob, p.context_len - H, "nll", p.open_loop_prob)
     return fit(loss_fn, model.hip, w.tensors(), p.batch_size, lr=p.lr, seed=seed, valid_fn=valid_fn,
-               progress=False, budget_s=budget_s, patience=p.patience, desc="HiP-RSSM")
+               progress=False, budget_s=budget_s, patience=p.patience, desc="HiP-RSSM", valid_every=p.valid_every,
+               max_steps=max_steps)
 
 
 HIPRSSM_SIZES = dict(latent_obs_dim=8, task_dim=8, hidden=32, num_basis=4, bandwidth=2)
@@ -167,7 +168,7 @@ def ch5_experiment(dataset: str = "hidden_payload_arm", window: int = 25, observ
     }
     protocol = Protocol(context_len=H + c, horizon=H - c, horizons=(1, 5, 10, H - c), eval_stride=2 * H,
                         valid_stride=2 * H, batch_size=64, keep_prob=0.5, open_loop_prob=0.5, lr=5e-3,
-                        score_dims=(0, 1))
+                        score_dims=(0, 1), valid_every=50)
     models.update(_reference_models(protocol))
     models.update(_oracle_models(dataset))
     return Experiment(f"ch5_{dataset}", f"Chapter 5, open-loop prediction in the second of two task windows on {dataset}",
@@ -206,7 +207,7 @@ def ch6_experiment(dataset: str = "slow_payload_arm", window: int = 25) -> Exper
     }
     protocol = Protocol(context_len=2 * window, horizon=200, horizons=(25, 50, 100, 200), eval_stride=250,
                         valid_stride=500, batch_size=48, keep_prob=0.85, open_loop_prob=0.5,
-                        mask_window=window, max_window_drop=0.75, lr=1e-2)
+                        mask_window=window, max_window_drop=0.75, lr=1e-2, valid_every=20)
     models.update(_reference_models(protocol))
     models.update(_oracle_models(dataset))
     return Experiment(f"ch6_{dataset}", f"Chapter 6, long-horizon open-loop prediction on {dataset}",

@@ -31,6 +31,11 @@ import numpy as np
 from .stats import Interval, mean_interval, paired_ratio, rmse_interval
 
 __all__ = [
+    "package_source_hash",
+    "package_note",
+    "merge_results",
+    "check_study",
+    "training_table",
     "validation_choice",
     "provenance",
     "save_results",
@@ -63,8 +68,39 @@ def _command() -> str:
     return " ".join(["python", *argv])
 
 
+def package_source_hash(root: str | os.PathLike | None = None) -> str:
+    """SHA-256 of the package's source: every ``*.py`` file under ``pgm_wm/`` (its path relative
+    to the package and its bytes, in sorted order). Equal hashes mean the same code, whatever the
+    commit; a chapter compares the hash in a results file with the installed package's."""
+    import hashlib
+
+    pkg = Path(__file__).resolve().parents[1] if root is None else Path(root)
+    h = hashlib.sha256()
+    for f in sorted(pkg.rglob("*.py")):
+        if "__pycache__" in f.parts:
+            continue
+        h.update(f.relative_to(pkg).as_posix().encode() + b"\0")
+        h.update(f.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def package_note(results: Mapping[str, Any]) -> str | None:
+    """``None`` if ``results`` were made by this package's source (:func:`package_source_hash`),
+    else a sentence saying that they were not (for a chapter to print visibly)."""
+    made = results.get("provenance", {}).get("package_hash")
+    if made == package_source_hash():
+        return None
+    when = results.get("provenance", {}).get("date", "an unknown date")
+    if made is None:
+        return (f"Note: these results were made on {when} by a package version that did not record its source "
+                f"hash, so they may come from other code than the package you are running.")
+    return (f"Note: these results were made on {when} by package source {made[:12]}, which differs from the source "
+            f"installed here ({package_source_hash()[:12]}); regenerate them with the command in their provenance "
+            f"to see the numbers of this code.")
+
+
 def provenance(**extra: Any) -> dict[str, Any]:
-    """Commit, command, date and machine of the current run, plus ``extra`` entries."""
+    """Commit, package-source hash, command, date and machine of the current run, plus ``extra``."""
     import torch
 
     # "dirty": tracked files changed other than results/ (the outputs of earlier runs are not code)
@@ -72,6 +108,7 @@ def provenance(**extra: Any) -> dict[str, Any]:
     info: dict[str, Any] = {
         "commit": _git("rev-parse", "HEAD") or "unknown",
         "dirty": bool(status) if status is not None else None,
+        "package_hash": package_source_hash(),
         "command": _command(),
         "date": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "machine": {
@@ -80,7 +117,7 @@ def provenance(**extra: Any) -> dict[str, Any]:
             "cpu_count": os.cpu_count(),
             "python": platform.python_version(),
             "torch": torch.__version__,
-            "torch_threads": torch.get_num_threads(),
+            "torch_threads": 1,            # every model trains and is scored with one thread (runner._run_one)
         },
     }
     info.update(extra)
@@ -170,6 +207,94 @@ def check_output_path(path: str | os.PathLike, force: bool = False) -> Path:
     except OSError as err:
         raise ValueError(f"out: cannot write into {p.parent} ({type(err).__name__}: {err})") from err
     return p
+
+
+def merge_results(parts: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """One results file from runs of the same experiment with different seeds (e.g. split over
+    several sessions): the same experiment, protocol, horizons, budget, test windows and package
+    source are required, and the seeds must not overlap. Per model, the seeds' arrays and runs
+    are concatenated in seed order; the provenance lists every part's."""
+    if len(parts) < 2:
+        raise ValueError("parts: need at least two results to merge")
+    first = parts[0]
+    same = ("experiment", "horizons", "protocol", "units", "scale")
+    for i, r in enumerate(parts[1:], 1):
+        for key in same:
+            if r.get(key) != first.get(key):
+                raise ValueError(f"parts: part {i} differs from part 0 in {key!r}")
+        for key in ("budget_cpu_s", "package_hash", "max_steps"):
+            if r["provenance"].get(key) != first["provenance"].get(key):
+                raise ValueError(f"parts: part {i} differs from part 0 in provenance {key!r}")
+        if set(r["models"]) != set(first["models"]):
+            raise ValueError(f"parts: part {i} has other models than part 0")
+    seeds = [list(r["provenance"].get("seeds", [])) for r in parts]
+    flat = [s for ss in seeds for s in ss]
+    if len(set(flat)) != len(flat):
+        raise ValueError(f"parts: the seeds overlap ({seeds})")
+    order = np.argsort(flat, kind="stable")
+    models: dict[str, Any] = {}
+    for name, entry in first["models"].items():
+        sq = np.concatenate([np.asarray(r["models"][name]["sq_err"], dtype=np.float64) for r in parts])
+        if sq.shape[0] != len(flat):
+            raise ValueError(f"parts: model {name!r} does not have one row per seed")
+        nll = None
+        if entry.get("nll") is not None:
+            nll = np.concatenate([np.asarray(r["models"][name]["nll"], dtype=np.float64) for r in parts])[order]
+        runs = [run for r in parts for run in r["models"][name].get("runs", [])]
+        models[name] = {**entry, "sq_err": sq[order], "nll": nll,
+                        "runs": [runs[i] for i in order] if len(runs) == len(flat) else runs}
+    prov = {**first["provenance"], "seeds": sorted(flat), "parts": [r["provenance"] for r in parts],
+            "wall_s": round(sum(float(r["provenance"].get("wall_s", 0.0)) for r in parts), 1)}
+    merged = {**first, "provenance": prov, "models": models}
+    _check_results(merged)
+    return merged
+
+
+def check_study(results: Mapping[str, Any], min_seeds: int = 5) -> None:
+    """Raise ``ValueError`` unless ``results`` is a complete study of the convergence protocol:
+    at least ``min_seeds`` seeds, the package-source hash, and for every trained model and seed
+    the optimizer steps, epochs, the learning curve (validation RMSE, with test RMSE at the
+    checkpoints) and the stopping rule's verdict."""
+    _check_results(results)
+    prov = results["provenance"]
+    if len(prov.get("seeds", [])) < min_seeds:
+        raise ValueError(f"results: {len(prov.get('seeds', []))} seeds, need at least {min_seeds}")
+    if not prov.get("package_hash"):
+        raise ValueError("results: no package_hash in the provenance")
+    for name, entry in results["models"].items():
+        if not entry.get("trained", True):
+            continue
+        runs = entry.get("runs", [])
+        if len(runs) != len(prov["seeds"]):
+            raise ValueError(f"results: model {name!r} has {len(runs)} runs for {len(prov['seeds'])} seeds")
+        for i, run in enumerate(runs):
+            for key in ("steps", "epochs", "curve", "converged", "improvement_last_doubling", "best_valid"):
+                if key not in run:
+                    raise ValueError(f"results: model {name!r}, run {i} has no {key!r}")
+            curve = run["curve"]
+            if len(curve) < 3 or not all({"step", "cpu_s", "valid"} <= set(e) for e in curve):
+                raise ValueError(f"results: model {name!r}, run {i} has no usable learning curve")
+            if not any("test" in e for e in curve):
+                raise ValueError(f"results: model {name!r}, run {i} has no test checkpoint on its curve")
+
+
+def training_table(results: Mapping[str, Any]) -> str:
+    """Markdown: per trained model, the median over seeds of its optimizer steps, epochs and
+    best validation RMSE, and how many seeds met the stopping rule (the best validation RMSE
+    improved by less than 2 % over the last doubling of the budget)."""
+    from ..plotting import markdown_table
+
+    rows = []
+    for name, entry in results["models"].items():
+        runs = entry.get("runs", [])
+        if not entry.get("trained", True) or not runs or "steps" not in runs[0]:
+            continue
+        med = lambda key: float(np.median([float(r[key]) for r in runs]))  # noqa: E731
+        impr = [float(r["improvement_last_doubling"]) for r in runs]
+        rows.append([name, f"{med('steps'):.0f}", f"{med('epochs'):.0f}", f"{med('best_valid'):.4g}",
+                     f"{100 * float(np.median(impr)):.1f} %", f"{sum(bool(r['converged']) for r in runs)}/{len(runs)}"])
+    return markdown_table(rows, ["model", "steps", "epochs", "valid RMSE (normalized)",
+                                 "improvement, last doubling", "converged"])
 
 
 def load_results(path: str | os.PathLike) -> dict[str, Any]:

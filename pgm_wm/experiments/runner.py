@@ -37,7 +37,8 @@ from .results import check_output_path, provenance, save_results
 if TYPE_CHECKING:  # pragma: no cover
     from ..datasets import SequenceData
 
-__all__ = ["Protocol", "Splits", "ModelSpec", "Experiment", "train_model", "validation_rmse", "test_windows", "score", "score_oracle",
+__all__ = ["Protocol", "Splits", "ModelSpec", "Experiment", "LearningCurve", "improvement_over_last_doubling",
+           "CONVERGENCE_TOL", "train_model", "validation_rmse", "test_windows", "score", "score_oracle",
            "run_experiment"]
 
 
@@ -55,6 +56,11 @@ class Protocol:
     observation dimensions that are scored and used for selection on validation (all if
     ``None``), e.g. the angles only when the observations mix angles and velocities, so that a
     reported RMSE has one unit; every model still trains on all dimensions.
+
+    ``valid_every``: the open-loop validation RMSE is computed every this many optimizer steps
+    (and at the end of the budget); the parameters with the lowest one are kept. At the CPU
+    times ``curve_checkpoints_s`` the test RMSE is recorded too, for the learning-curve figure
+    only (never for a choice).
     """
 
     context_len: int
@@ -70,6 +76,8 @@ class Protocol:
     lr: float = 3e-3
     patience: int | None = None
     score_dims: tuple[int, ...] | None = None
+    valid_every: int = 25
+    curve_checkpoints_s: tuple[float, ...] = (2.5, 5.0, 10.0, 20.0, 40.0, 80.0, 160.0, 320.0, 640.0, 1280.0)
 
     def __post_init__(self) -> None:
         if self.context_len < 1 or self.horizon < 1:
@@ -79,6 +87,8 @@ class Protocol:
         if self.score_dims is not None and (not self.score_dims or any(d < 0 for d in self.score_dims)
                                             or len(set(self.score_dims)) != len(self.score_dims)):
             raise ValueError(f"score_dims: need distinct non-negative dimensions, got {self.score_dims}")
+        if not isinstance(self.valid_every, int) or self.valid_every < 1:
+            raise ValueError(f"valid_every: need a positive int, got {self.valid_every!r}")
 
     def scored(self, x: Tensor) -> Tensor:
         """The scored observation dimensions (``score_dims``) of ``x: (..., do)``."""
@@ -118,17 +128,22 @@ class ModelSpec:
     original units, for the test windows (the physics oracle of a simulated dataset,
     :func:`pgm_wm.datasets.oracles.oracle_windows`); it has no predictive variance, so no NLL.
 
-    ``train(model, splits, protocol, seed, budget_s, valid_fn) -> FitHistory`` replaces the
+    ``train(model, splits, protocol, seed, budget_s, valid_fn, max_steps=None) -> FitHistory`` replaces the
     generic training (crops of ``protocol.window`` steps, :func:`pgm_wm.training.imputation_loss_fn`)
     for a model that needs its own training data, e.g. the HiP-RSSM's windows with context sets;
-    it must call :func:`pgm_wm.training.fit` with ``budget_s`` and ``valid_fn`` (the same open-loop
-    validation windows as every other model) so the budget and the selection stay the same.
+    it must call :func:`pgm_wm.training.fit` with ``budget_s``, ``valid_fn`` (the same open-loop
+    validation windows as every other model, and the learning curve), ``valid_every`` and
+    ``max_steps`` so the budget, the selection and the curve stay the same.
+
+    ``probe(model, splits, protocol, seed) -> dict`` is measured on the trained model after
+    scoring and stored with its run (e.g. how well the HiP-RSSM's task latent reads the payload).
     """
 
     build: Callable[[Splits], nn.Module] | None = None
     trained: bool = True
     oracle: Callable[[Protocol], tuple[Tensor, Tensor]] | None = None
     train: Callable[..., Any] | None = None
+    probe: Callable[..., dict[str, Any]] | None = None
 
     def __post_init__(self) -> None:
         if (self.build is None) == (self.oracle is None):
@@ -190,28 +205,143 @@ def validation_rmse(model: nn.Module, splits: Splits, protocol: Protocol) -> flo
     return _valid_score(model, splits, protocol)()
 
 
-def train_model(exp: Experiment, name: str, seed: int, budget_s: float) -> tuple[nn.Module, dict[str, Any]]:
-    """Build model ``name`` with ``seed`` and train it for ``budget_s`` CPU seconds (reference rows: build only)."""
+class LearningCurve:
+    """The validation function handed to :func:`pgm_wm.training.fit`, which also records the
+    learning curve: every call computes the open-loop validation RMSE (normalized units); the
+    first call after each CPU time of ``checkpoints`` (seconds since ``start``) computes the test
+    RMSE as well (for the figure only: it is never returned, so it can never select anything)."""
+
+    def __init__(self, valid_fn: Callable[[], float], test_fn: Callable[[], float], checkpoints: Sequence[float],
+                 start: float) -> None:
+        self.valid_fn, self.test_fn, self.start = valid_fn, test_fn, start
+        self.pending = sorted(float(c) for c in checkpoints)
+        self.calls: list[dict[str, float]] = []
+
+    def __call__(self) -> float:
+        cpu = time.process_time() - self.start
+        valid = self.valid_fn()
+        entry = {"cpu_s": cpu, "valid": valid}
+        if self.pending and cpu >= self.pending[0]:
+            while self.pending and cpu >= self.pending[0]:
+                self.pending.pop(0)
+            entry["test"] = self.test_fn()
+        self.calls.append(entry)
+        return valid
+
+
+def improvement_over_last_doubling(curve: Sequence[Mapping[str, float]], budget_s: float) -> float:
+    r"""The stopping rule's statistic: the relative improvement of the best validation RMSE over
+    the last doubling of the budget, :math:`(v^*_{B/2} - v^*_B) / v^*_{B/2}`, with :math:`v^*_c`
+    the lowest validation RMSE recorded at CPU time :math:`\le c`: ``inf`` (not converged) when
+    nothing finite was recorded by :math:`B/2` but something was by :math:`B`, ``nan`` when
+    nothing finite was recorded at all."""
+    def best(upto: float) -> float:
+        vals = [e["valid"] for e in curve if e["cpu_s"] <= upto and math.isfinite(e["valid"])]
+        return min(vals) if vals else math.nan
+
+    half, full = best(budget_s / 2), best(budget_s)
+    if math.isnan(half):
+        return math.nan if math.isnan(full) else math.inf
+    return (half - full) / half
+
+
+CONVERGENCE_TOL = 0.02
+"""A run has converged when its best validation RMSE improved by less than this fraction over
+the last doubling of its budget (:func:`improvement_over_last_doubling`)."""
+
+
+def _thin(curve: Sequence[Mapping[str, float]], n: int = 64) -> list[dict[str, float]]:
+    """At most about ``n`` entries of a learning curve, spaced evenly in log(step), always keeping
+    the first and last entries, every entry with a test RMSE and every new best validation."""
+    if len(curve) <= n:
+        return [dict(e) for e in curve]
+    keep, best, next_step = [], math.inf, 0.0
+    last_step = max(1.0, float(curve[-1]["step"]))
+    ratio = last_step ** (1.0 / n)
+    for i, e in enumerate(curve):
+        new_best = e["valid"] < best
+        best = min(best, e["valid"])
+        if i in (0, len(curve) - 1) or "test" in e or new_best or e["step"] >= next_step:
+            keep.append(dict(e))
+            next_step = max(e["step"], 1.0) * ratio
+    return keep
+
+
+def _warm_up(model: nn.Module, splits: Splits, protocol: Protocol) -> float:
+    """One forward (and, where it has a graph, backward) pass on two validation windows, before the budget starts:
+    compiled loops compile (or load their cache) here, not inside a model's training budget.
+    Returns the CPU seconds it took; the gradients are discarded."""
+    t0 = time.process_time()
+    obs, act, val = splits.normalized("valid")
+    wo, wa = _windows(obs, act, val, protocol.window, protocol.valid_stride or protocol.horizon)
+    mask = torch.zeros(wo[:2].shape[:2], dtype=torch.bool)
+    mask[:, :protocol.context_len] = True
+    mean, var = model(wo[:2], wa[:2], mask)
+    if mean.requires_grad:          # an evaluation-only wrapper (the HiP-RSSM window model) has no graph
+        (mean.sum() + var.sum()).backward()
+        model.zero_grad(set_to_none=True)
+    return time.process_time() - t0
+
+
+def _test_rmse(model: nn.Module, splits: Splits, protocol: Protocol) -> Callable[[], float]:
+    wo, wa = test_windows(splits, protocol)
+    target = protocol.scored(wo[:, protocol.context_len:])
+
+    def test_fn() -> float:
+        mean, _ = _open_loop(model, wo, wa, protocol)
+        err = (protocol.scored(mean) - target).square().mean()
+        return float(err.sqrt()) if bool(torch.isfinite(err)) else math.inf
+
+    return test_fn
+
+
+def train_model(exp: Experiment, name: str, seed: int, budget_s: float,
+                max_steps: int | None = None) -> tuple[nn.Module, dict[str, Any]]:
+    """Build model ``name`` with ``seed`` and train it for ``budget_s`` CPU seconds (reference
+    rows: build only). ``max_steps`` caps the optimizer steps as well (the equal-steps check).
+
+    Before the budget starts, one warm-up pass compiles what needs compiling. During training
+    the validation RMSE is computed every ``protocol.valid_every`` steps (keep-best selects on
+    it) and a :class:`LearningCurve` records it. Returns the model with the best validation
+    parameters and ``info``: CPU seconds, optimizer steps, epochs, the best validation RMSE and
+    its step, the learning curve (thinned; ``step``, ``epoch``, ``cpu_s``, ``valid``, ``train``
+    and, at the checkpoints, ``test``), and the stopping rule's statistic and verdict
+    (:data:`CONVERGENCE_TOL`)."""
     spec = exp.models[name]
     splits = exp.load()
     set_seed(seed)
     model = spec.build(splits)
     start = time.process_time()
     if not spec.trained:
-        return model.eval(), {"cpu_s": round(time.process_time() - start, 2), "epochs": 0}
+        return model.eval(), {"cpu_s": round(time.process_time() - start, 2), "epochs": 0, "steps": 0}
     p = exp.protocol
+    warm = _warm_up(model, splits, p)
+    set_seed(seed)                     # the warm-up drew no random numbers; reseed all the same
+    tracker = LearningCurve(_valid_score(model, splits, p), _test_rmse(model, splits, p), p.curve_checkpoints_s,
+                            time.process_time())
     if spec.train is not None:
-        hist = spec.train(model, splits, p, seed, budget_s, _valid_score(model, splits, p))
-        return model.eval(), {"cpu_s": round(time.process_time() - start, 2), "epochs": hist.epochs,
-                              "best_valid": hist.best_valid_loss}
-    obs, act, val = splits.normalized("train")
-    loss_fn = imputation_loss_fn(model, p.keep_prob, p.context_len, "nll", p.open_loop_prob,
-                                 window=p.mask_window, max_window_drop=p.max_window_drop)
-    hist = fit(loss_fn, model, (obs, act, val), p.batch_size, lr=p.lr, seed=seed,
-               valid_fn=_valid_score(model, splits, p), progress=False, crop_len=p.window,
-               budget_s=budget_s, patience=p.patience, desc=name)
-    return model.eval(), {"cpu_s": round(time.process_time() - start, 2), "epochs": hist.epochs,
-                          "best_valid": hist.best_valid_loss}
+        hist = spec.train(model, splits, p, seed, budget_s, tracker, max_steps=max_steps)
+    else:
+        obs, act, val = splits.normalized("train")
+        loss_fn = imputation_loss_fn(model, p.keep_prob, p.context_len, "nll", p.open_loop_prob,
+                                     window=p.mask_window, max_window_drop=p.max_window_drop)
+        hist = fit(loss_fn, model, (obs, act, val), p.batch_size, lr=p.lr, seed=seed, valid_fn=tracker,
+                   progress=False, crop_len=p.window, budget_s=budget_s, patience=p.patience, desc=name,
+                   valid_every=p.valid_every, max_steps=max_steps)
+    if len(tracker.calls) != len(hist.curve):
+        raise RuntimeError("train: the learning curve and fit's history disagree (a custom trainer must pass "
+                           "valid_fn to fit)")
+    curve = [{"step": c["step"], "epoch": c["epoch"], "cpu_s": round(t["cpu_s"], 3), "valid": t["valid"],
+              "train": c["train"], **({"test": t["test"]} if "test" in t else {})}
+             for c, t in zip(hist.curve, tracker.calls)]
+    stat = improvement_over_last_doubling(curve, budget_s)
+    return model.eval(), {
+        "cpu_s": round(time.process_time() - start, 2), "warm_up_cpu_s": round(warm, 2),
+        "steps": hist.curve[-1]["step"] if hist.curve else 0, "epochs": hist.epochs,
+        "best_valid": hist.best_valid_loss, "best_step": hist.best_step, "stopped": hist.stopped,
+        "improvement_last_doubling": stat,
+        "converged": bool(stat < CONVERGENCE_TOL) if math.isfinite(stat) else False,
+        "curve": _thin(curve)}
 
 
 def test_windows(splits: Splits, protocol: Protocol) -> tuple[Tensor, Tensor]:
@@ -258,28 +388,45 @@ def score(model: nn.Module, splits: Splits, protocol: Protocol) -> tuple[np.ndar
 _FORKED_EXPERIMENT: Experiment | None = None  # set before forking workers (lambdas do not pickle)
 
 
-def _run_one(task: tuple[str, int, float], exp: Experiment | None = None
+def _run_one(task: tuple[str, int, float, int | None], exp: Experiment | None = None
              ) -> tuple[str, int, np.ndarray, np.ndarray | None, dict]:
-    name, seed, budget_s = task
+    name, seed, budget_s, max_steps = task
     exp = _FORKED_EXPERIMENT if exp is None else exp
     assert exp is not None
     torch.set_num_threads(1)
     if exp.models[name].oracle is not None:
         return name, seed, score_oracle(exp.models[name], exp.load(), exp.protocol), None, {"oracle": True}
-    model, info = train_model(exp, name, seed, budget_s)
+    model, info = train_model(exp, name, seed, budget_s, max_steps=max_steps)
     sq, nll = score(model, exp.load(), exp.protocol)
+    if exp.models[name].probe is not None:
+        info["probe"] = exp.models[name].probe(model, exp.load(), exp.protocol, seed)
     return name, seed, sq, nll, info
 
 
+def _log_line(name: str, seed: int, info: Mapping[str, Any]) -> str:
+    if info.get("oracle"):
+        return f"{name:>36} (oracle)"
+    if "curve" not in info:
+        return f"{name:>36} (fitted in closed form)"
+    return (f"{name:>36} seed {seed}: {info['cpu_s']:.0f} CPU s, {info['steps']} steps, {info['epochs']} epochs, "
+            f"best valid {info['best_valid']:.4g} at step {info['best_step']}, last doubling "
+            f"{100 * info['improvement_last_doubling']:.1f} % ({'converged' if info['converged'] else 'NOT converged'})")
+
+
 def run_experiment(exp: Experiment, seeds: Sequence[int], budget_s: float, out_path: str | None = None,
-                   jobs: int = 1, models: Sequence[str] | None = None, log: Callable[[str], None] = print
-                   ) -> dict[str, Any]:
+                   jobs: int = 1, models: Sequence[str] | None = None, log: Callable[[str], None] = print,
+                   max_steps: int | None = None) -> dict[str, Any]:
     """Train and score every model for every seed; return (and optionally save) the results.
 
     ``jobs > 1`` runs (model, seed) pairs in that many processes; each gets ``budget_s`` CPU
-    seconds and one thread either way."""
+    seconds and one thread either way. ``max_steps`` also caps every model's optimizer steps
+    (the equal-steps comparison: give a budget large enough that no model runs out of it)."""
     if len(seeds) < 1:
         raise ValueError("seeds: need at least one seed")
+    if len(set(seeds)) != len(seeds) or any(not isinstance(s, int) or s < 0 for s in seeds):
+        raise ValueError(f"seeds: need distinct non-negative ints, got {list(seeds)}")
+    if max_steps is not None and (not isinstance(max_steps, int) or max_steps < 1):
+        raise ValueError(f"max_steps: must be a positive int or None, got {max_steps!r}")
     if not (isinstance(budget_s, (int, float)) and math.isfinite(budget_s) and budget_s > 0):
         raise ValueError(f"budget_s: must be a positive finite number of CPU seconds, got {budget_s!r}")
     if not isinstance(jobs, int) or isinstance(jobs, bool) or jobs < 1:
@@ -292,10 +439,11 @@ def run_experiment(exp: Experiment, seeds: Sequence[int], budget_s: float, out_p
             raise ValueError(f"models: unknown model {n!r} (known: {', '.join(exp.models)})")
     if out_path is not None:  # before any training: a path that cannot be written fails now
         check_output_path(out_path, force=True)
-    tasks = [(n, s, budget_s) for n in names for s in (seeds if exp.models[n].trained else seeds[:1])]
+    tasks = [(n, s, budget_s, max_steps) for n in names for s in (seeds if exp.models[n].trained else seeds[:1])]
     t0 = time.perf_counter()
     # commit, date and machine are recorded when the run starts; the wall time when it ends
-    started = provenance(budget_cpu_s=budget_s, seeds=list(seeds), jobs=jobs)
+    started = provenance(budget_cpu_s=budget_s, seeds=list(seeds), jobs=jobs, max_steps=max_steps,
+                         convergence_tol=CONVERGENCE_TOL)
     if jobs > 1:
         import multiprocessing as mp
 
@@ -304,13 +452,13 @@ def run_experiment(exp: Experiment, seeds: Sequence[int], budget_s: float, out_p
         with mp.get_context("fork").Pool(jobs) as pool:
             outs = []
             for out in pool.imap_unordered(_run_one, tasks):
-                log(f"{out[0]:>28} seed {out[1]}: {out[4]}")
+                log(_log_line(out[0], out[1], out[4]))
                 outs.append(out)
     else:
         outs = []
         for task in tasks:
             out = _run_one(task, exp)
-            log(f"{out[0]:>28} seed {out[1]}: {out[4]}")
+            log(_log_line(out[0], out[1], out[4]))
             outs.append(out)
     per: dict[str, dict[int, tuple[np.ndarray, np.ndarray | None, dict]]] = {n: {} for n in names}
     for name, seed, sq, nll, info in outs:
