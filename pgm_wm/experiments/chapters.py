@@ -21,7 +21,8 @@ from .runner import Experiment, ModelSpec, Protocol, Splits, validation_rmse
 if TYPE_CHECKING:  # pragma: no cover
     from ..training import FitHistory
 
-__all__ = ["EXPERIMENTS", "HIPRSSM_SIZES", "ch4_experiment", "ch5_experiment", "ch6_experiment", "HiPRSSMWindowModel", "train_hiprssm"]
+__all__ = ["EXPERIMENTS", "HIPRSSM_SIZES", "ch4_experiment", "ch5_experiment", "ch6_experiment", "HiPRSSMWindowModel",
+           "train_hiprssm", "hiprssm_task_probe"]
 
 
 @lru_cache(maxsize=None)
@@ -138,6 +139,43 @@ def train_hiprssm(model: HiPRSSMWindowModel, s: Splits, p: Protocol, seed: int, 
                max_steps=max_steps)
 
 
+def hiprssm_task_probe(model: HiPRSSMWindowModel, s: Splits, p: Protocol, seed: int) -> dict[str, float]:
+    r"""What the trained HiP-RSSM's task latent carries, on held-out trajectories: the task means
+    :math:`\mu_l` of every window of the training split (from its previous window, the context
+    the model uses) and of the test split; probes (:mod:`pgm_wm.probes`) fitted on the training
+    windows and scored on the test windows, R² of
+
+    * ``payload_linear`` / ``payload_mlp``: the payload read from :math:`\mu_l` (linear, small MLP);
+    * ``payload_from_motion_linear``: the payload read from a summary of the previous window's
+      motion (mean angles, mean actions, mean absolute velocities): what the context offers
+      without any model;
+    * ``motion_linear``: the standardized motion summary read from :math:`\mu_l` (a latent that
+      encodes the recent motion rather than the payload scores high here).
+    """
+    from ..datasets.windows import make_windows
+    from ..probes import linear_probe_r2, mlp_probe_r2
+
+    H = model.window
+
+    def windows(split: str):
+        d = getattr(s, split)
+        obs, act, val = s.normalized(split)
+        return make_windows(obs, act, H, val, {"payload": d.hidden["payload"]}, model.diff_shift, model.diff_scale)
+
+    def motion(w) -> Tensor:
+        return torch.cat([w.prev_obs[:, :, :2].mean(1), w.prev_actions.mean(1), w.prev_obs[:, :, 2:].abs().mean(1)], 1)
+
+    W = {k: windows(k) for k in ("train", "test")}
+    with torch.no_grad():
+        mu = {k: model.hip.infer_task(w.context, w.context_mask).mean for k, w in W.items()}
+    pay = {k: w.hidden["payload"][:, 0] for k, w in W.items()}
+    mot = {k: motion(w) for k, w in W.items()}
+    return {"payload_linear": linear_probe_r2(mu["train"], pay["train"], mu["test"], pay["test"]),
+            "payload_mlp": mlp_probe_r2(mu["train"], pay["train"], mu["test"], pay["test"], seed=seed),
+            "payload_from_motion_linear": linear_probe_r2(mot["train"], pay["train"], mot["test"], pay["test"]),
+            "motion_linear": linear_probe_r2(mu["train"], mot["train"], mu["test"], mot["test"])}
+
+
 HIPRSSM_SIZES = dict(latent_obs_dim=8, task_dim=8, hidden=32, num_basis=4, bandwidth=2)
 """The HiP-RSSM sizes of the chapter-5 study (and of its chapter-6 row); the ablations of the
 chapter-5 notebook build their variants with them."""
@@ -160,7 +198,7 @@ def ch5_experiment(dataset: str = "hidden_payload_arm", window: int = 25, observ
                                   r["diff_shift"], r["diff_scale"])
 
     models: dict[str, ModelSpec] = {
-        "HiP-RSSM (linear task term)": ModelSpec(hip, train=train_hiprssm),
+        "HiP-RSSM (linear task term)": ModelSpec(hip, train=train_hiprssm, probe=hiprssm_task_probe),
         "its ac-RKN core, no task": ModelSpec(lambda s: build_acrkn(*_dims(s), control="mlp", **sizes, **_readout(s))),
         "ac-RKN (Chapter 4)": ModelSpec(lambda s: build_acrkn(*_dims(s), **_readout(s))),
         "LSTM": ModelSpec(lambda s: build_baseline("lstm", *_dims(s), **_readout(s))),
