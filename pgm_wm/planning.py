@@ -55,7 +55,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._checks import check_finite, check_spd, check_tensor
+from ._checks import as_tensor, check_finite, check_spd
 from .beliefs import Gaussian
 from .kalman import kalman_filter, kf_predict, kf_update, rts_smoother
 
@@ -101,23 +101,17 @@ __all__ = [
 
 
 def _as_float(name: str, x: object, dtype: torch.dtype | None = None) -> Tensor:
-    """A floating tensor from a tensor / array / number (float64 for non-tensors), finite."""
-    if isinstance(x, Tensor):
-        t = x if dtype is None else x.to(dtype)
-    else:
+    """A finite float32/float64 tensor (:func:`pgm_wm._checks.as_tensor`); arrays, lists and numbers
+    become float64, tensors keep their dtype unless ``dtype`` is given."""
+    if not isinstance(x, Tensor):
         try:
-            t = torch.as_tensor(np.asarray(x, dtype=np.float64))
+            x = np.asarray(x, dtype=np.float64)
         except (TypeError, ValueError) as err:
-            raise ValueError(f"{name}: cannot be converted to a float tensor ({err})") from err
-        if dtype is not None:
-            t = t.to(dtype)
-    if not torch.is_floating_point(t):
-        t = t.to(torch.float64)
+            raise ValueError(f"{name}: cannot be converted to a float array ({err})") from err
+    t = as_tensor(name, x, dtype)
     if t.dtype not in (torch.float32, torch.float64):
         raise ValueError(f"{name}: dtype {t.dtype} is not supported; use float32 or float64")
-    if not bool(torch.isfinite(t).all()):
-        raise ValueError(f"{name}: contains NaN or infinite values")
-    return t
+    return check_finite(name, t)
 
 
 def _shape(name: str, x: Tensor, shape: tuple[int, ...]) -> Tensor:
@@ -138,6 +132,18 @@ def _per_step(name: str, x: object, steps: int, dim: int, dtype: torch.dtype) ->
     if t.ndim == 1 and t.shape[0] == dim:
         return t.expand(steps, dim)
     return _shape(name, t, (steps, dim))
+
+
+def _history(obs_history: object, action_history: object, do: int | None, da: int,
+             dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """``obs_history: (C, do)`` (C >= 1) and ``action_history: (C - 1, da)`` (may be empty), finite."""
+    obs = _as_float("obs_history", obs_history, dtype)
+    if obs.ndim != 2 or obs.shape[0] < 1 or (do is not None and obs.shape[1] != do):
+        raise ValueError(f"obs_history: expected (C, {do or 'do'}) with C >= 1, got {tuple(obs.shape)}")
+    act = _as_float("action_history", action_history, dtype)
+    if act.numel() == 0:
+        act = act.reshape(0, da)
+    return obs, _shape("action_history", act, (obs.shape[0] - 1, da))
 
 
 def _sym(m: Tensor) -> Tensor:
@@ -810,17 +816,8 @@ class SamplingPlanner:
 
     def _check_inputs(self, obs_history: object, action_history: object, target: object
                       ) -> tuple[Tensor, Tensor, Tensor]:
-        obs = _as_float("obs_history", obs_history, self.dtype)
-        if obs.ndim != 2 or obs.shape[0] < 1:
-            raise ValueError(f"obs_history: expected (C, do) with C >= 1, got {tuple(obs.shape)}")
-        act = torch.as_tensor(action_history) if not isinstance(action_history, Tensor) else action_history
-        act = _as_float("action_history", act.reshape(-1, self.action_dim) if act.numel() == 0 else act, self.dtype)
-        _shape("action_history", act, (obs.shape[0] - 1, self.action_dim))
-        tgt = torch.as_tensor(target) if not isinstance(target, Tensor) else target
-        if bool(torch.isnan(tgt.to(torch.float64)).any()):
-            raise ValueError("target: contains NaN (give untracked dimensions weight 0 instead)")
-        tgt = _per_step("target", tgt, self.horizon, obs.shape[1], self.dtype)
-        return obs, act, tgt
+        obs, act = _history(obs_history, action_history, None, self.action_dim, self.dtype)
+        return obs, act, _per_step("target", target, self.horizon, obs.shape[1], self.dtype)
 
     @torch.no_grad()
     def plan(self, obs_history: object, action_history: object, target: object, state: Any = None) -> PlanResult:
@@ -1320,16 +1317,8 @@ def closed_loop(env: Env, policy: Callable[..., Tensor], state: Any, obs_history
     if (cost.obs_dim, cost.action_dim) != (do, da):
         raise ValueError(f"cost: weights of size ({cost.obs_dim}, {cost.action_dim}) do not match the "
                          f"simulator's ({do}, {da})")
-    obs = _as_float("obs_history", obs_history, torch.float64)
-    if obs.ndim != 2 or obs.shape[1] != do or obs.shape[0] < 1:
-        raise ValueError(f"obs_history: expected (C, {do}) with C >= 1, got {tuple(obs.shape)}")
-    act = _as_float("action_history", torch.as_tensor(action_history).reshape(-1, da)
-                    if np.size(action_history) == 0 else action_history, torch.float64)
-    _shape("action_history", act, (obs.shape[0] - 1, da))
-    tg = torch.as_tensor(targets) if not isinstance(targets, Tensor) else targets
-    if bool(torch.isnan(tg.to(torch.float64)).any()):
-        raise ValueError("targets: contains NaN")
-    tg = _per_step("targets", tg, steps, do, torch.float64)
+    obs, act = _history(obs_history, action_history, do, da, torch.float64)
+    tg = _per_step("targets", targets, steps, do, torch.float64)
     noise = np.broadcast_to(np.asarray(obs_noise, dtype=np.float64), (do,))
     if not np.isfinite(noise).all() or (noise < 0).any():
         raise ValueError(f"obs_noise: must be finite and >= 0, got {obs_noise!r}")

@@ -735,3 +735,49 @@ def test_closed_loop_input_errors():
         TwoLinkArmEnv().step(np.zeros(3), np.zeros(2))
     with pytest.raises(ValueError, match="^actions:"):
         MemoryArmEnv().step(MemoryArmEnv().initial_state(), np.array([np.nan, 0.0]))
+
+
+def test_adapter_and_arx_input_errors():
+    model = random_arx(2)
+    with pytest.raises(ValueError, match="^model:"):
+        world_model_predictor(3)
+    with pytest.raises(ValueError, match="^context_len:"):
+        world_model_predictor(model, context_len=0)
+    with pytest.raises(ValueError, match="^stats:"):
+        world_model_predictor(model, dict(obs_mean=torch.zeros(2), obs_std=torch.ones(2)))
+    with pytest.raises(ValueError, match=r"^stats\['obs_std'\]:"):
+        world_model_predictor(model, dict(obs_mean=torch.zeros(2), obs_std=torch.zeros(2),
+                                          act_mean=torch.zeros(2), act_std=torch.ones(2)))
+    with pytest.raises(ValueError, match="^model:"):
+        arx_state_space(torch.nn.Linear(2, 2))
+    ss = arx_state_space(model)
+    with pytest.raises(ValueError, match="^obs_history:"):
+        ss.state(torch.zeros(1, 2, dtype=DT), torch.zeros(0, 2, dtype=DT))     # order 2 needs 2 steps
+    with pytest.raises(ValueError, match="^action_history:"):
+        ss.state(torch.zeros(3, 2, dtype=DT), torch.zeros(3, 2, dtype=DT))
+    with pytest.raises(ValueError, match="^obs_weight:"):
+        arx_lqr(model, torch.zeros(2, 2, dtype=DT), torch.zeros(1, 2, dtype=DT), torch.zeros(2),
+                [-1.0, 1.0], [1.0, 1.0], 5)
+    with pytest.raises(ValueError, match="^target:"):
+        arx_lqr(model, torch.zeros(2, 2, dtype=DT), torch.zeros(1, 2, dtype=DT), torch.zeros(4, 2),
+                [1.0, 1.0], [1.0, 1.0], 5)
+
+
+def test_float32_model_and_planner():
+    """A float32 world model is fed in its dtype and its predictions come back in the planner's
+    dtype, equal to the float64 model's to float32 precision; a float32 planner plans with it."""
+    model64 = random_arx(2, seed=4)
+    model32 = random_arx(2, seed=4).float()
+    g = torch.Generator().manual_seed(2)
+    obs_hist, act_hist = torch.randn(4, 2, generator=g, dtype=DT), torch.randn(3, 2, generator=g, dtype=DT)
+    cand = torch.randn(5, 3, 2, generator=g, dtype=DT)
+    m64, _ = world_model_predictor(model64)(obs_hist, act_hist, cand)
+    m32, _ = world_model_predictor(model32)(obs_hist, act_hist, cand)
+    assert m32.dtype == DT
+    torch.testing.assert_close(m32, m64, rtol=1e-5, atol=1e-5)
+    cost = QuadraticCost(torch.ones(2), torch.full((2,), 0.1))
+    planner = SamplingPlanner(world_model_predictor(model32), cost, 3, -1.0, 1.0, n_samples=32, n_iters=2,
+                              dtype=torch.float32)
+    res = planner.plan(obs_hist, act_hist, torch.zeros(2))
+    assert res.actions.dtype == torch.float32 and res.mean.dtype == torch.float32
+    assert res.cost <= float(res.mean_costs[0])
