@@ -718,8 +718,13 @@ class SamplingPlanner:
       :math:`\rho`) give :math:`m \leftarrow \alpha m + (1 - \alpha)\,\mathrm{mean}(\text{elites})`,
       :math:`\sigma \leftarrow \alpha\sigma + (1 - \alpha)\max(\mathrm{std}(\text{elites}), \sigma_\min)`
       (``momentum`` :math:`\alpha`, ``min_std`` :math:`\sigma_\min`);
-    * **MPPI** (Eq. plan-mppi): :math:`m \leftarrow \sum_j w_j a^{(j)}`,
-      :math:`w_j \propto \exp(-(J_j - \min_i J_i)/\eta)` (``temperature`` :math:`\eta`), :math:`\sigma` fixed.
+    * **MPPI** (Eq. plan-mppi): :math:`m \leftarrow \alpha m + (1 - \alpha)\sum_j w_j a^{(j)}`,
+      :math:`w_j \propto \exp(-(J_j - \min_i J_i)/\eta)` (``temperature`` :math:`\eta`, an absolute
+      cost scale); with ``adapt_std`` (default) also
+      :math:`\sigma \leftarrow \alpha\sigma + (1 - \alpha)\max\big((\textstyle\sum_j w_j (a^{(j)} - m)^2)^{1/2}, \sigma_\min\big)`
+      (the weighted spread; measured on the double integrator of the tests it is needed to get
+      within 1 % of the optimum in 20 iterations), with ``adapt_std=False`` the classic fixed
+      :math:`\sigma`. ``momentum`` 0.5 avoided the early collapse of :math:`\sigma` seen with 0.
 
     The plan returned is the better of the final mean and the best candidate evaluated. All
     randomness comes from one ``torch.Generator`` seeded with ``seed`` (:meth:`reset` reseeds it).
