@@ -18,6 +18,7 @@ Modules, in the order the book introduces them:
 * :mod:`pgm_wm.acrkn`            action-conditional RKN: control causes, readout, inverse model — Chapter 4
 * :mod:`pgm_wm.hiprssm`          hidden-parameter RSSM: the task cause                          — Chapter 5
 * :mod:`pgm_wm.mts3`             multi-time-scale SSM with N task levels                        — Chapter 6
+* :mod:`pgm_wm.planning`         LQR as inference (Kalman duality), CEM/MPPI planning, closed loops — Chapter 7
 * :mod:`pgm_wm.training`         the one ``fit`` loop, observation masks, the one loss factory
 * :mod:`pgm_wm.evaluation`       multi-step / open-loop evaluation, window-wise scores
 * :mod:`pgm_wm.metrics`          RMSE, Gaussian NLL, sliding-window metrics, (de)normalization
