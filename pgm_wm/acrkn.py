@@ -550,8 +550,8 @@ class AcRKN(nn.Module):
         ``validate=False`` skips the input checks, for callers that checked their inputs once
         (:meth:`forward` does, the later chapters' models do at their own boundary).
         """
-        if validate:
-            mask = check_sequences(obs, actions, mask, self.obs_dim, self.action_dim, model=self)
+        if validate:        # the encoder checks the observation size (a filter needs no readout)
+            mask = check_sequences(obs, actions, mask, None, self.action_dim, model=self)
         w = self.rkn.encode(obs, mask, validate=False)
         return self.latent_filter(w, mask, self.causes(actions) + list(causes), init)
 
