@@ -7,7 +7,7 @@ Chapters add their own helpers at the end of this file (one function per plot ki
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -384,3 +384,52 @@ def plot_filter_1d(
     for name, (mean, var) in beliefs.items():
         plot_belief(ax, t, mean, var, label=name, n_std=n_std)
     ax.grid(alpha=0.3)
+
+
+__all__ += ["best_so_far", "plot_learning_curves"]
+
+
+def best_so_far(curve: Sequence[Mapping[str, float]], grid: Any, key: str = "valid", x: str = "cpu_s") -> np.ndarray:
+    """The lowest ``key`` recorded at ``x <= g`` for every ``g`` of ``grid`` (``nan`` before the
+    first record): the validation RMSE a run selected by keep-best would have had with a budget
+    ``g``. ``curve`` is a learning curve of :func:`pgm_wm.experiments.runner.train_model`."""
+    xs = np.array([e[x] for e in curve], dtype=np.float64)
+    vs = np.array([e[key] for e in curve], dtype=np.float64)
+    order = np.argsort(xs, kind="stable")
+    xs, best = xs[order], np.minimum.accumulate(np.where(np.isfinite(vs[order]), vs[order], np.inf))
+    idx = np.searchsorted(xs, np.asarray(grid, dtype=np.float64), side="right") - 1
+    out = np.where(idx >= 0, best[np.clip(idx, 0, None)], np.nan)
+    return np.where(np.isinf(out), np.nan, out)
+
+
+def plot_learning_curves(ax: Any, results: Mapping[str, Any], models: Sequence[str] | None = None,
+                         references: Sequence[str] | None = None, x: str = "cpu_s", n_grid: int = 200) -> None:
+    """Validation RMSE (normalized units, lowest so far) against CPU seconds (``x="cpu_s"``) or
+    optimizer steps (``x="step"``) for the trained ``models`` of a results file: the median over
+    seeds as a line, the range over seeds as a band; the ``references`` (rows fitted in closed
+    form, the physics oracle) as horizontal dashed lines at their validation RMSE. Log-log axes."""
+    entries = results["models"]
+    if models is None:
+        models = [n for n, e in entries.items() if e.get("trained", True)]
+    if references is None:
+        references = [n for n, e in entries.items() if not e.get("trained", True)]
+    top = max(max(e[x] for e in r["curve"]) for n in models for r in entries[n]["runs"])
+    low = min(min(e[x] for e in r["curve"]) for n in models for r in entries[n]["runs"])
+    grid = np.geomspace(max(low, 1e-3), top, n_grid)
+    for n in models:
+        curves = np.stack([best_so_far(r["curve"], grid, x=x) for r in entries[n]["runs"]])
+        with np.errstate(all="ignore"):
+            med = np.nanmedian(curves, 0)
+            lo, hi = np.nanmin(curves, 0), np.nanmax(curves, 0)
+        (line,) = ax.plot(grid, med, lw=1.6, label=n)
+        ax.fill_between(grid, lo, hi, color=line.get_color(), alpha=0.2, lw=0)
+    styles = iter([(0, (4, 2)), (0, (1, 1.5)), (0, (6, 2, 1, 2)), (0, (2, 2))] * 3)
+    for n in references:
+        v = entries[n]["runs"][0].get("best_valid") if entries[n].get("runs") else None
+        if v is not None and np.isfinite(v):
+            ax.axhline(v, color="0.35", lw=1.1, ls=next(styles), label=f"{n} (reference)")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("training CPU seconds" if x == "cpu_s" else "optimizer steps")
+    ax.set_ylabel("validation RMSE, lowest so far (normalized)")
+    ax.grid(alpha=0.3, which="both")

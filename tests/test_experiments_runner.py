@@ -279,3 +279,24 @@ def test_cli_seed_start_and_merge(tmp_path):
         main(["ch4", "--seeds", "1", "--seed-start", "-1", "--out", str(tmp_path / "x.json")])
     with pytest.raises(SystemExit):
         main(["merge", str(tmp_path / "m.json"), str(tmp_path / "missing.json")])
+
+
+def test_best_so_far_and_the_learning_curve_figure():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pgm_wm.plotting import best_so_far, plot_learning_curves
+
+    curve = [{"cpu_s": 1.0, "valid": 3.0}, {"cpu_s": 2.0, "valid": 1.0}, {"cpu_s": 4.0, "valid": 2.0},
+             {"cpu_s": 8.0, "valid": float("inf")}, {"cpu_s": 9.0, "valid": 0.5}]
+    np.testing.assert_array_equal(best_so_far(curve, [0.5, 1.0, 3.0, 8.5, 10.0]), [np.nan, 3.0, 1.0, 1.0, 0.5])
+    exp = _tiny_gru_experiment()
+    res = run_experiment(exp, [0, 1], 1e6, jobs=1, log=lambda s: None, max_steps=6)
+    fig, ax = plt.subplots()
+    plot_learning_curves(ax, res)
+    labels = [t.get_text() for t in ax.legend().get_texts()]
+    assert labels[0] == "gru" and sum("(reference)" in s for s in labels) == 3
+    assert len(ax.collections) == 1                       # one band (the trained model over its seeds)
+    plt.close(fig)

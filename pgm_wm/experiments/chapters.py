@@ -61,8 +61,11 @@ def _oracle_models(dataset: str, params: tuple[str, ...] = ("true", "nominal")) 
     from ..datasets.oracles import oracle_windows
 
     def row(params: str) -> ModelSpec:
-        return ModelSpec(oracle=lambda p: oracle_windows(dataset, "test", p.context_len, p.horizon, p.eval_stride,
-                                                         params=params))
+        def predict(p: Protocol, split: str = "test") -> tuple[Tensor, Tensor]:
+            stride = p.eval_stride if split == "test" else (p.valid_stride or p.horizon)
+            return oracle_windows(dataset, split, p.context_len, p.horizon, stride, params=params)
+
+        return ModelSpec(oracle=predict)
 
     return {f"physics oracle ({p} parameters)": row(p) for p in params}
 

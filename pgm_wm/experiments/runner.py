@@ -124,8 +124,8 @@ class ModelSpec:
     ``build(splits) -> model`` with the world-model interface ``model(obs, actions, mask)``.
     With ``trained=False`` the model is complete when built (a reference row fitted in closed
     form inside ``build``, e.g. :meth:`pgm_wm.baselines.LinearARX.fit`); it is deterministic and
-    scored once. ``oracle(protocol) -> (mean, target)`` instead gives predictions directly, in
-    original units, for the test windows (the physics oracle of a simulated dataset,
+    scored once. ``oracle(protocol, split="test") -> (mean, target)`` instead gives predictions
+    directly, in original units, for the test (or validation) windows (the physics oracle of a simulated dataset,
     :func:`pgm_wm.datasets.oracles.oracle_windows`); it has no predictive variance, so no NLL.
 
     ``train(model, splits, protocol, seed, budget_s, valid_fn, max_steps=None) -> FitHistory`` replaces the
@@ -312,8 +312,9 @@ def train_model(exp: Experiment, name: str, seed: int, budget_s: float,
     set_seed(seed)
     model = spec.build(splits)
     start = time.process_time()
-    if not spec.trained:
-        return model.eval(), {"cpu_s": round(time.process_time() - start, 2), "epochs": 0, "steps": 0}
+    if not spec.trained:     # a reference row: its validation RMSE is a line in the learning-curve figure
+        return model.eval(), {"cpu_s": round(time.process_time() - start, 2), "epochs": 0, "steps": 0,
+                              "best_valid": validation_rmse(model.eval(), splits, exp.protocol)}
     p = exp.protocol
     warm = _warm_up(model, splits, p)
     set_seed(seed)                     # the warm-up drew no random numbers; reseed all the same
@@ -348,6 +349,19 @@ def test_windows(splits: Splits, protocol: Protocol) -> tuple[Tensor, Tensor]:
     """The normalized test windows ``(obs, actions)`` every model is scored on."""
     obs, act, val = splits.normalized("test")
     return _windows(obs, act, val, protocol.window, protocol.eval_stride)
+
+
+def oracle_validation_rmse(spec: ModelSpec, splits: Splits, protocol: Protocol) -> float | None:
+    """An oracle row's open-loop RMSE on the validation windows, in the normalized units of
+    :func:`validation_rmse` (``None`` if its ``oracle`` takes no split)."""
+    assert spec.oracle is not None
+    try:
+        mean, target = spec.oracle(protocol, "valid")
+    except TypeError:
+        return None
+    std = splits.train.stats["obs_std"].to(target.dtype)
+    err = protocol.scored((mean.to(target.dtype) - target) / std)
+    return float(err.square().mean().sqrt())
 
 
 def score_oracle(spec: ModelSpec, splits: Splits, protocol: Protocol) -> np.ndarray:
@@ -395,7 +409,8 @@ def _run_one(task: tuple[str, int, float, int | None], exp: Experiment | None = 
     assert exp is not None
     torch.set_num_threads(1)
     if exp.models[name].oracle is not None:
-        return name, seed, score_oracle(exp.models[name], exp.load(), exp.protocol), None, {"oracle": True}
+        return name, seed, score_oracle(exp.models[name], exp.load(), exp.protocol), None, {
+            "oracle": True, "best_valid": oracle_validation_rmse(exp.models[name], exp.load(), exp.protocol)}
     model, info = train_model(exp, name, seed, budget_s, max_steps=max_steps)
     sq, nll = score(model, exp.load(), exp.protocol)
     if exp.models[name].probe is not None:
