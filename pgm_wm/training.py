@@ -420,6 +420,8 @@ def fit(
     checkpoint: str | os.PathLike | None = None,
     device: torch.device | str | None = None,
     max_steps: int | None = None,
+    lr_patience: int | None = None,
+    lr_factor: float = 0.5,
 ) -> FitHistory:
     """Minimize ``loss_fn`` with Adam over minibatches; the package's only training loop.
 
@@ -462,6 +464,10 @@ def fit(
             ``None`` leaves everything where it is.
         max_steps: stop after this many optimizer steps (with or without a budget; an equal
             number of gradient steps for every model, instead of equal CPU seconds).
+        lr_patience, lr_factor: multiply the learning rate by ``lr_factor`` whenever the
+            validation loss has not improved for ``lr_patience`` validations in a row (a plateau
+            schedule; ``None``: a constant learning rate). The learning rate of every validation
+            is in the learning curve (``"lr"``).
 
     The learning curve (:attr:`FitHistory.curve`) records steps, epochs, CPU and wall seconds,
     and the training and validation losses at every validation.
@@ -504,6 +510,10 @@ def fit(
         raise ValueError(f"valid_every: needs valid_fn and a positive int, got {valid_every!r}")
     if max_steps is not None and (not isinstance(max_steps, int) or isinstance(max_steps, bool) or max_steps <= 0):
         raise ValueError(f"max_steps: must be a positive int or None, got {max_steps!r}")
+    if lr_patience is not None and (valid_fn is None or not isinstance(lr_patience, int) or lr_patience <= 0):
+        raise ValueError(f"lr_patience: needs valid_fn and a positive int, got {lr_patience!r}")
+    if not 0 < lr_factor < 1:
+        raise ValueError(f"lr_factor: must be in (0, 1), got {lr_factor!r}")
     if keep_best is None:
         keep_best = valid_fn is not None
     if keep_best and valid_fn is None:
@@ -559,10 +569,11 @@ def fit(
                unit="batch" if by_epochs else "cpu-s", disable=not show_progress(progress), leave=True)
     out_of_budget = False
     since_total, since_count = 0.0, 0  # training loss since the last curve entry
+    since_lr = 0                       # validations without improvement since the last lr change
 
     def validate(epoch_now: int) -> bool:
         """One validation; returns True when patience ran out."""
-        nonlocal best, best_state, since_best, since_total, since_count
+        nonlocal best, best_state, since_best, since_total, since_count, since_lr
         v = math.nan
         if valid_fn is not None:
             if model is not None:
@@ -578,14 +589,20 @@ def fit(
             hist.valid_loss.append(v)
             hist.valid_steps.append(n_steps)
             if v < best:
-                best, hist.best_epoch, hist.best_step, since_best = v, epoch_now, n_steps, 0
+                best, hist.best_epoch, hist.best_step, since_best, since_lr = v, epoch_now, n_steps, 0, 0
                 if keep_best:
                     best_state = snapshot()
             else:
                 since_best += 1
+                since_lr += 1
         hist.curve.append({"step": n_steps, "epoch": epoch_now, "cpu_s": time.process_time() - cpu0,
                            "wall_s": time.perf_counter() - wall0, "valid": v,
-                           "train": since_total / since_count if since_count else math.nan})
+                           "train": since_total / since_count if since_count else math.nan,
+                           "lr": opt.param_groups[0]["lr"]})
+        if lr_patience is not None and since_lr >= lr_patience:
+            for group in opt.param_groups:
+                group["lr"] *= lr_factor
+            since_lr = 0
         since_total, since_count = 0.0, 0
         return patience is not None and since_best >= patience
 

@@ -153,7 +153,7 @@ def test_valid_every_and_the_learning_curve():
     assert [c["valid"] for c in hist.curve] == values[:5]
     for k, c in enumerate(hist.curve):                            # train = mean loss since the last validation
         assert c["train"] == pytest.approx(sum(losses[5 * k:5 * k + 5]) / 5, rel=1e-12)
-        assert set(c) == {"step", "epoch", "cpu_s", "wall_s", "valid", "train"}
+        assert set(c) == {"step", "epoch", "cpu_s", "wall_s", "valid", "train", "lr"}
     assert all(a["cpu_s"] <= b["cpu_s"] and a["wall_s"] <= b["wall_s"] for a, b in zip(hist.curve, hist.curve[1:]))
     assert hist.steps == [12, 24, 25] and hist.epochs == 3 and hist.setup_cpu_s >= 0
 
@@ -247,3 +247,20 @@ def test_device_cuda_trains_on_the_gpu():
 
     fit(loss, net, (X, y), 32, 2, device="auto", progress=False)
     assert set(seen) == {"cuda"} and next(net.parameters()).device.type == "cuda"
+
+
+def test_plateau_schedule_halves_the_learning_rate_after_lr_patience_validations_without_improvement():
+    """A validation loss that improves at validations 1, 2 and 5 only: with lr_patience 2 the
+    learning rate is halved after validations 4, 7 and 9 (counting from 1), and never otherwise."""
+    torch.manual_seed(0)
+    w = torch.nn.Parameter(torch.zeros(3))
+    losses = iter([5.0, 4.0, 4.5, 4.2, 3.0, 3.5, 3.1, 3.2, 3.3, 3.4])
+    data = (torch.randn(8, 3),)
+    hist = fit(lambda b, g: (b[0] @ w).square().mean(), [w], data, batch_size=8, epochs=10, lr=0.1,
+               valid_fn=lambda: next(losses), lr_patience=2, keep_best=False)
+    lrs = [c["lr"] for c in hist.curve]
+    assert lrs == pytest.approx([0.1, 0.1, 0.1, 0.1, 0.05, 0.05, 0.05, 0.025, 0.025, 0.0125])
+    with pytest.raises(ValueError, match="lr_factor"):
+        fit(lambda b, g: (b[0] @ w).sum(), [w], data, batch_size=8, epochs=1, valid_fn=lambda: 1.0, lr_factor=1.0)
+    with pytest.raises(ValueError, match="lr_patience"):
+        fit(lambda b, g: (b[0] @ w).sum(), [w], data, batch_size=8, epochs=1, lr_patience=3)

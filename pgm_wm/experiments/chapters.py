@@ -139,7 +139,7 @@ def train_hiprssm(model: HiPRSSMWindowModel, s: Splits, p: Protocol, seed: int, 
     loss_fn = imputation_loss_fn(model.hip, p.keep_prob, p.context_len - H, "nll", p.open_loop_prob)
     return fit(loss_fn, model.hip, w.tensors(), p.batch_size, lr=p.lr, seed=seed, valid_fn=valid_fn,
                progress=False, budget_s=budget_s, patience=p.patience, desc="HiP-RSSM", valid_every=p.valid_every,
-               max_steps=max_steps)
+               max_steps=max_steps, lr_patience=p.lr_patience)
 
 
 def hiprssm_task_probe(model: HiPRSSMWindowModel, s: Splits, p: Protocol, seed: int) -> dict[str, float]:

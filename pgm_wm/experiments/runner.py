@@ -58,7 +58,9 @@ class Protocol:
     reported RMSE has one unit; every model still trains on all dimensions.
 
     ``valid_every``: the open-loop validation RMSE is computed every this many optimizer steps
-    (and at the end of the budget); the parameters with the lowest one are kept. At the CPU
+    (and at the end of the budget); the parameters with the lowest one are kept. With
+    ``lr_patience`` the learning rate is halved whenever that many validations in a row brought
+    no improvement (:func:`pgm_wm.training.fit`). At the CPU
     times ``curve_checkpoints_s`` the test RMSE is recorded too, for the learning-curve figure
     only (never for a choice).
     """
@@ -77,6 +79,7 @@ class Protocol:
     patience: int | None = None
     score_dims: tuple[int, ...] | None = None
     valid_every: int = 25
+    lr_patience: int | None = None
     curve_checkpoints_s: tuple[float, ...] = (2.5, 5.0, 10.0, 20.0, 40.0, 80.0, 160.0, 320.0, 640.0, 1280.0)
 
     def __post_init__(self) -> None:
@@ -328,7 +331,7 @@ def train_model(exp: Experiment, name: str, seed: int, budget_s: float,
                                      window=p.mask_window, max_window_drop=p.max_window_drop)
         hist = fit(loss_fn, model, (obs, act, val), p.batch_size, lr=p.lr, seed=seed, valid_fn=tracker,
                    progress=False, crop_len=p.window, budget_s=budget_s, patience=p.patience, desc=name,
-                   valid_every=p.valid_every, max_steps=max_steps)
+                   valid_every=p.valid_every, max_steps=max_steps, lr_patience=p.lr_patience)
     if len(tracker.calls) != len(hist.curve):
         raise RuntimeError("train: the learning curve and fit's history disagree (a custom trainer must pass "
                            "valid_fn to fit)")
