@@ -556,7 +556,7 @@ def fit(
         best, since_best, n_steps, epoch = state["best"], state["since_best"], state["steps"], state["epoch"]
         best_state, used_before = state["best_state"], state["cpu_used"]
         hist = FitHistory(**state["history"])
-        hist.resumed_from_epoch = epoch
+        hist.resumed_from_epoch, hist.stopped = epoch, "epochs"
     n_batches = max_batches if sampler else (n + batch_size - 1) // batch_size
     if max_batches is not None:
         n_batches = min(n_batches, max_batches)
@@ -567,7 +567,6 @@ def fit(
     total = (epochs * n_batches) if by_epochs else round(float(budget_s), 1)
     bar = tqdm(total=total, initial=min(epoch * n_batches, total) if by_epochs else 0, desc=desc,
                unit="batch" if by_epochs else "cpu-s", disable=not show_progress(progress), leave=True)
-    out_of_budget = False
     since_total, since_count = 0.0, 0  # training loss since the last curve entry
     since_lr = 0                       # validations without improvement since the last lr change
 
@@ -606,8 +605,12 @@ def fit(
         since_total, since_count = 0.0, 0
         return patience is not None and since_best >= patience
 
+    # a resumed run that had already used its budget or its patience does not train further
+    out_of_budget = budget_s is not None and time.process_time() - cpu0 >= budget_s
+    stop = patience is not None and since_best >= patience
+    if stop:
+        hist.stopped = "patience"
     try:
-        stop = False
         while (epochs is None or epoch < epochs) and not out_of_budget and not stop:
             t0 = time.perf_counter()
             if model is not None:
