@@ -56,6 +56,7 @@ __all__ = [
     "set_condition",
     "zero_padding",
     "precision_weights",
+    "precision_sums",
     "masked_mean_pool",
     "masked_max_pool",
     "positive_variance",
@@ -89,7 +90,7 @@ def _check_set(r: Tensor, r_var: Tensor, mask: Tensor | None, validate: bool) ->
     return mask
 
 
-def _precision_sums(r: Tensor, r_var: Tensor, mask: Tensor | None, center: Tensor) -> tuple[Tensor, Tensor]:
+def precision_sums(r: Tensor, r_var: Tensor, mask: Tensor | None, center: Tensor) -> tuple[Tensor, Tensor]:
     r"""The two sufficient statistics of a set, :math:`\sum_n m_n\sigma_n^{\ominus}` and
     :math:`\sum_n m_n (r_n - c)\oslash\sigma_n`, each ``(..., d)``.
 
@@ -178,7 +179,7 @@ def set_update(
             raise ValueError(f"prior: batch shape {tuple(prior.mean.shape[:-1])} does not broadcast to the "
                              f"set's batch shape {tuple(r.shape[:-2])}") from err
         mu0 = prior.mean.expand(full)
-        prec_sum, resid_sum = _precision_sums(r, r_var, mask, mu0)
+        prec_sum, resid_sum = precision_sums(r, r_var, mask, mu0)
         var = 1.0 / (1.0 / prior.var + prec_sum)
         return DiagGaussian(mu0 + var * resid_sum, var)
     if not isinstance(prior, FactorizedBelief):
@@ -194,7 +195,7 @@ def set_update(
     except ValueError as err:
         raise ValueError(f"observation: batch shape {tuple(r.shape[:-2])} does not broadcast with the prior's "
                          f"{tuple(mu_u.shape[:-1])}") from err
-    prec_sum, resid_sum = _precision_sums(r, r_var, mask, mu_u.expand(*batch, m))
+    prec_sum, resid_sum = precision_sums(r, r_var, mask, mu_u.expand(*batch, m))
     lam_u_post = lam_u + prec_sum
     var_u, var_l, side = block_inverse(lam_u_post, lam_l.expand_as(lam_u_post), lam_s.expand_as(lam_u_post))
     mean = prior.mean + torch.cat([var_u * resid_sum, side * resid_sum], dim=-1)

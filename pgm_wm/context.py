@@ -26,6 +26,7 @@ import torch
 from torch import Tensor, nn
 
 from ._checks import check_tensor
+from .datasets.windows import transition_features
 from .metrics import gaussian_nll
 from .training import FitHistory, fit
 
@@ -39,25 +40,6 @@ __all__ = [
     "fit_set_model",
     "evaluate_set_model",
 ]
-
-
-def transition_features(obs: Tensor, actions: Tensor) -> Tensor:
-    r"""Per-step transition elements :math:`[o_t, a_t, o_{t+1}-o_t]` for :math:`t = 1..T-1`.
-
-    Shapes: ``obs: (..., T, d_obs)``, ``actions: (..., T, d_act)`` -> ``(..., T-1, 2 d_obs + d_act)``.
-    Pass already-normalized observations/actions; the difference is taken of what is passed (for
-    the arm datasets normalize it afterwards with the training ``diff`` statistics, or pass
-    normalized inputs and let the network rescale).
-    """
-    check_tensor("obs", obs, min_ndim=2)
-    check_tensor("actions", actions, min_ndim=2)
-    if obs.shape[:-1] != actions.shape[:-1]:
-        raise ValueError(
-            f"actions: leading shape {tuple(actions.shape[:-1])} differs from obs {tuple(obs.shape[:-1])}"
-        )
-    if obs.shape[-2] < 2:
-        raise ValueError(f"obs: need at least 2 time steps, got {obs.shape[-2]}")
-    return torch.cat([obs[..., :-1, :], actions[..., :-1, :], obs[..., 1:, :] - obs[..., :-1, :]], dim=-1)
 
 
 def normalized_transition_features(data: Any) -> Tensor:

@@ -55,6 +55,8 @@ __all__ = [
     "DiagGaussian",
     "block_inverse",
     "factorized_update",
+    "update_unchecked",
+    "as_observation",
     "factorized_predict",
     "factorized_predict_from_matrix",
     "linear_cause",
@@ -84,9 +86,10 @@ def block_inverse(upper: Tensor, lower: Tensor, side: Tensor) -> tuple[Tensor, T
     return lower / d, upper / d, -side / d
 
 
-def _observation(name: str, observation: DiagGaussian | Tensor, rest: tuple, mask: Tensor | None
+def as_observation(name: str, observation: DiagGaussian | Tensor, rest: tuple, mask: Tensor | None
                  ) -> tuple[DiagGaussian, Tensor | None]:
-    """Accept ``DiagGaussian(w, w_var), mask`` or the older positional form ``w, w_var, mask``."""
+    """``(observation, mask)`` from ``DiagGaussian(w, w_var), mask`` or the older positional form
+    ``w, w_var, mask`` (the argument convention of every factorized filter and update)."""
     if isinstance(observation, DiagGaussian):
         if len(rest) > 1:
             raise ValueError(f"{name}: unexpected extra positional arguments (pass causes=..., init=... by name)")
@@ -147,7 +150,7 @@ def factorized_update(
     """
     if not isinstance(prior, FactorizedBelief):
         raise ValueError(f"prior: expected a FactorizedBelief, got {type(prior).__name__}")
-    obs, mask = _observation("observation", observation, args, mask)
+    obs, mask = as_observation("observation", observation, args, mask)
     m = prior.latent_obs_dim
     check_last_dims("observation.mean", obs.mean, (m,))
     check_same_dtype(("prior.mean", "prior.var_upper", "prior.var_lower", "prior.cov_side", "observation.mean",
@@ -165,11 +168,12 @@ def factorized_update(
         check_finite("observation.mean", obs.mean)
     if mask is not None:
         mask = check_mask("mask", mask, tuple(full))
-    return _update_core(prior, obs.mean, obs.var, mask)
+    return update_unchecked(prior, obs.mean, obs.var, mask)
 
 
-def _update_core(prior: FactorizedBelief, w: Tensor, w_var: Tensor, mask: Tensor | None) -> FactorizedBelief:
-    """Arithmetic of Eq. (rkn-update) without checks (see :func:`factorized_update`)."""
+def update_unchecked(prior: FactorizedBelief, w: Tensor, w_var: Tensor, mask: Tensor | None) -> FactorizedBelief:
+    """Arithmetic of Eq. (rkn-update) without checks (see :func:`factorized_update`): for loops that
+    checked their inputs once before the first step."""
     su, sl, ss = prior.var_upper, prior.var_lower, prior.cov_side
     inv_S = 1.0 / (su + w_var)
     if mask is None:
@@ -383,7 +387,7 @@ def factorized_filter(
         causes = () if inputs is None else (inputs.at(t),)
         return _predict_core(post, A, trans_var, causes)
 
-    update = lambda b, y, m_t: _update_core(b, y.mean, y.var, m_t)  # noqa: E731
+    update = lambda b, y, m_t: update_unchecked(b, y.mean, y.var, m_t)  # noqa: E731
     return filter_loop(prior, update, predict, observation, mask)
 
 

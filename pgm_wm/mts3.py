@@ -79,9 +79,9 @@ from torch import Tensor, nn
 
 from ._checks import check_last_dims
 from .acrkn import AcRKN, DifferenceReadout, MLPControl, check_sequences
-from .aggregation import BayesianContextEncoder, SetEncoder, _precision_sums, set_update
+from .aggregation import BayesianContextEncoder, SetEncoder, precision_sums, set_update
 from .beliefs import DiagGaussian, FactorizedBelief
-from .factorized import _observation, diagonal_factorized_filter, factorized_predict, linear_cause
+from .factorized import as_observation, diagonal_factorized_filter, factorized_predict, linear_cause
 from .filtering import FilterResult
 from .rkn import BeliefDecoder, BlockMatrix, Cause, LocallyLinearTransition, ObservationEncoder, zero_missing
 from .datasets.windows import pad_to_windows, to_windows
@@ -318,7 +318,7 @@ class TaskSSM(nn.Module):
         (:func:`pgm_wm.aggregation.set_update`) on the window's abstract observations
         ``DiagGaussian(beta, beta_var)`` with ``(B, H, m)``, ``mask: (B, H)`` (the older
         ``update(prior, beta, beta_var, mask)`` is accepted too)."""
-        obs, mask = _observation("observation", observation, args, mask)
+        obs, mask = as_observation("observation", observation, args, mask)
         return set_update(prior, obs, mask, validate=False)
 
 
@@ -346,7 +346,7 @@ def slow_level_filter(level: TaskSSM, beta: DiagGaussian, alpha: DiagGaussian | 
         raise ValueError("level: needs an unconditioned level with a constant X with diagonal blocks")
     # the set's two sufficient statistics (Chapter 2), centred at 0: λ_k and Σ_t m β / ν
     zero_center = beta.mean.new_zeros(beta.mean.shape[:-2] + beta.mean.shape[-1:])          # (B, K, m)
-    lam, info = _precision_sums(beta.mean, beta.var, observed, zero_center)
+    lam, info = precision_sums(beta.mean, beta.var, observed, zero_center)
     present = observed.any(-1)                                                      # (B, K)
     lam_safe = torch.where(present.unsqueeze(-1), lam, torch.ones_like(lam))
     summary = DiagGaussian(info / lam_safe, lam_safe.reciprocal())

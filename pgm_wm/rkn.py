@@ -37,8 +37,8 @@ from ._checks import check_finite, check_input_dtype, check_last_dims, check_mas
 from .aggregation import zero_padding
 from .beliefs import DiagGaussian, FactorizedBelief
 from .factorized import (
-    _observation,
-    _update_core,
+    as_observation,
+    update_unchecked,
     diagonal_factorized_filter,
     factorized_filter,
     factorized_predict_from_matrix,
@@ -439,7 +439,7 @@ def locally_linear_filter(
             nxt = predict_step(post, [] if inputs is None else [inputs.at(t)])
             return nxt.drop_side() if diagonal_only else nxt
 
-        update = lambda b, y, m_t: _update_core(b, y.mean, y.var, m_t)  # noqa: E731
+        update = lambda b, y, m_t: update_unchecked(b, y.mean, y.var, m_t)  # noqa: E731
         return filter_loop(prior, update, predict, observation, mask)
     B, T, m = w.shape
     band = transition.band_parameters()
@@ -542,7 +542,7 @@ class RKN(nn.Module):
         with diagonal blocks, :func:`pgm_wm.factorized.diagonal_factorized_filter`; otherwise the
         book's loop runs step by step.
         """
-        obs, mask = _observation("observation", observation, args, mask)
+        obs, mask = as_observation("observation", observation, args, mask)
         B, T, m = obs.mean.shape if obs.mean.ndim == 3 else (None, None, None)
         if validate:
             check_tensor("observation.mean", obs.mean, 3)
@@ -583,7 +583,7 @@ class RKN(nn.Module):
             nxt = predict_step(post, step_causes)
             return nxt.drop_side() if self.diagonal_only else nxt
 
-        update = lambda b, y, m_t: _update_core(b, y.mean, y.var, m_t)  # noqa: E731
+        update = lambda b, y, m_t: update_unchecked(b, y.mean, y.var, m_t)  # noqa: E731
         return filter_loop(prior, update, predict, obs, mask)
 
     def encode(self, obs: Tensor, mask: Tensor | None = None, *, validate: bool = True) -> DiagGaussian:

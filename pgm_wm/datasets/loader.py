@@ -36,7 +36,7 @@ from . import nile as _nile
 from . import pam_arm as _pam_arm
 from ._io import META_KEY, SEP, DataFileError, verify_file
 from .pendulum import render_pendulum
-from .sequences import SequenceData, _stats_numpy
+from .sequences import SequenceData, stats_numpy
 
 __all__ = ["DATASET_NAMES", "SPLITS", "ACTION_OPTIONS", "SequenceData", "load", "data_dir"]
 
@@ -253,7 +253,7 @@ def _assemble_numpy(name: str, split: str, action: str | None) -> tuple[dict[str
 def _compute_stats(pieces: dict[str, Any], with_diff: bool) -> dict[str, np.ndarray]:
     """:func:`~pgm_wm.datasets.sequences.compute_stats` of the numpy pieces of a split (float64)."""
     actions = None if pieces["actions"] is None else np.asarray(pieces["actions"])
-    return _stats_numpy(np.asarray(pieces["obs"]), actions, np.asarray(pieces["valid"], dtype=bool), with_diff)
+    return stats_numpy(np.asarray(pieces["obs"]), actions, np.asarray(pieces["valid"], dtype=bool), with_diff)
 
 
 _STATS_CACHE: dict[tuple, dict[str, np.ndarray]] = {}

@@ -215,7 +215,7 @@ def action_representation_check(train: SequenceData, valid: SequenceData, horizo
     ``repeat_last`` predicts no change. ``train``/``valid`` are :func:`load` splits
     with ``action="command"``; fitted on ``train``, scored on ``valid``.
     """
-    from .diagnostics import ridge_rmse  # diagnostics imports the loader, which imports this module
+    from .regression import ridge_rmse
 
     def inputs(data: SequenceData) -> dict[str, np.ndarray]:
         cmd = data.actions.double().numpy()

@@ -30,7 +30,7 @@ from torch import Tensor
 
 from .._checks import check_last_dims
 
-__all__ = ["SequenceData", "SequenceSplits", "compute_stats", "split_sequences", "STD_FLOOR"]
+__all__ = ["SequenceData", "SequenceSplits", "compute_stats", "stats_numpy", "split_sequences", "STD_FLOOR"]
 
 #: Standard deviations below this are raised to it, so normalising never divides by zero.
 STD_FLOOR = 1e-6
@@ -103,7 +103,7 @@ def _masked_mean_std(x: np.ndarray, mask: np.ndarray, argname: str, chunk: int =
     return mean, np.sqrt(sq / count)
 
 
-def _stats_numpy(obs: np.ndarray, actions: np.ndarray | None, valid: np.ndarray,
+def stats_numpy(obs: np.ndarray, actions: np.ndarray | None, valid: np.ndarray,
                  with_diff: bool) -> dict[str, np.ndarray]:
     """:func:`compute_stats` on checked numpy arrays; float64 results."""
     n, T, d = obs.shape
@@ -151,7 +151,7 @@ def compute_stats(obs: Tensor | np.ndarray, actions: Tensor | np.ndarray | None 
     o, a, v = _check_obs_actions(obs, actions, valid)
     if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
         raise ValueError(f"dtype: expected a floating torch dtype, got {dtype!r}")
-    return {k: torch.tensor(val, dtype=dtype) for k, val in _stats_numpy(o, a, v, with_diff).items()}
+    return {k: torch.tensor(val, dtype=dtype) for k, val in stats_numpy(o, a, v, with_diff).items()}
 
 
 def _check_stats(stats: Mapping[str, Any], d_obs: int, d_act: int) -> dict[str, np.ndarray]:
@@ -266,7 +266,7 @@ class SequenceData:
                     raise ValueError(f"hidden[{key!r}]: expected leading dims ({n}, {T}), got {tuple(arr.shape)}")
                 hid[key] = arr
         d_act = 0 if a is None else a.shape[2]
-        stats_np = _stats_numpy(o, a, v, with_diff=T >= 2) if stats is None else _check_stats(stats, d, d_act)
+        stats_np = stats_numpy(o, a, v, with_diff=T >= 2) if stats is None else _check_stats(stats, d, d_act)
         if a is not None and "act_mean" not in stats_np:
             raise ValueError("stats: actions were given but 'act_mean'/'act_std' are missing")
 
@@ -492,7 +492,7 @@ def split_sequences(data: SequenceData, fractions: Sequence[float] = (0.7, 0.15,
     train = parts[0]
     actions = None if data.actions is None else data.actions[train].double().numpy()
     with_diff = "diff_mean" in data.stats or not data.stats
-    stats = _stats_numpy(data.obs[train].double().numpy(), actions, data.valid[train].numpy(),
+    stats = stats_numpy(data.obs[train].double().numpy(), actions, data.valid[train].numpy(),
                          with_diff=with_diff and data.seq_len >= 2)
     stats_t = {k: torch.tensor(v, dtype=data.obs.dtype) for k, v in stats.items()}
     out = []

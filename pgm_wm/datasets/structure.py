@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .diagnostics import ridge_rmse
+from .regression import ridge_rmse
 from .loader import SequenceData, load
 from .memory_arm import initial_state, memory_actions, rollout_memory_arm
 from .two_link_arm import DEFAULT_PARAMS as ARM_PARAMS

@@ -19,9 +19,9 @@ import torch
 from torch import Tensor
 
 from .._checks import check_last_dims, check_mask, check_tensor, mask_observations
-from ..context import transition_features
 
 __all__ = [
+    "transition_features",
     "pad_to_windows",
     "to_windows",
     "context_features",
@@ -54,6 +54,26 @@ def to_windows(x: Tensor, window: int, name: str = "x") -> Tensor:
 
 
 
+def transition_features(obs: Tensor, actions: Tensor) -> Tensor:
+    r"""Per-step transition elements :math:`[o_t, a_t, o_{t+1}-o_t]` for :math:`t = 1..T-1`.
+
+    Shapes: ``obs: (..., T, d_obs)``, ``actions: (..., T, d_act)`` -> ``(..., T-1, 2 d_obs + d_act)``.
+    Pass already-normalized observations/actions; the difference is taken of what is passed (for
+    the arm datasets normalize it afterwards with the training ``diff`` statistics, or pass
+    normalized inputs and let the network rescale).
+    """
+    check_tensor("obs", obs, min_ndim=2)
+    check_tensor("actions", actions, min_ndim=2)
+    if obs.shape[:-1] != actions.shape[:-1]:
+        raise ValueError(
+            f"actions: leading shape {tuple(actions.shape[:-1])} differs from obs {tuple(obs.shape[:-1])}"
+        )
+    if obs.shape[-2] < 2:
+        raise ValueError(f"obs: need at least 2 time steps, got {obs.shape[-2]}")
+    return torch.cat([obs[..., :-1, :], actions[..., :-1, :], obs[..., 1:, :] - obs[..., :-1, :]], dim=-1)
+
+
+
 def context_features(
     obs: Tensor,
     actions: Tensor,
@@ -68,7 +88,7 @@ def context_features(
     -> ``x: (..., T-1, 2 do + da)``, ``mask: (..., T-1)`` with ``mask[t] = valid[t] & valid[t+1]``.
     ``diff_shift`` :math:`s` and ``diff_scale`` :math:`c` (``(do,)``, e.g. from
     :func:`pgm_wm.acrkn.difference_scaling`) standardize the difference so all three blocks have
-    unit scale; by default the raw difference is used (:func:`pgm_wm.context.transition_features`).
+    unit scale; by default the raw difference is used (:func:`transition_features`).
     Missing observations are zeroed, so their values never reach a present feature.
     """
     check_tensor("obs", obs, 2)
