@@ -221,48 +221,40 @@ def test_step_functions_check_values_and_dtypes() -> None:
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("m", [1, 2, 3])
-@pytest.mark.parametrize("jit", ["compiled", "tensor ops"])
-def test_per_sequence_paths_equal_reference(monkeypatch, dtype, m, jit) -> None:
-    """The per-sequence paths of the fast backend (a mask per sequence, shared parameters), filter
-    and RTS smoother, give the reference loops' numbers both compiled (numba, batch-last) and as
-    tensor operations (``PGM_WM_JIT=0``: the path for other devices), with a control input,
-    NaN at missing steps, a batch of two dimensions and observation variances far below the
-    prior variance; the smoothed covariances are exactly symmetric."""
-    from pgm_wm import _jit
+@pytest.mark.parametrize("backend", ["compiled", "tensor"])
+@pytest.mark.parametrize("mask_kind", ["per_sequence", "shared", "none"])
+def test_compiled_and_tensor_paths_equal_reference(dtype, m, backend, mask_kind) -> None:
+    """The compiled loops (numba, batch-last) and the tensor operations (the path for other
+    devices and for gradients), filter and RTS smoother, give the reference loops' numbers:
+    with a covariance per sequence (a mask per sequence) and with one covariance sequence for
+    the batch (a shared mask, or none), with a control input, NaN at missing steps, a batch of
+    two dimensions and observation variances far below the prior variance; the compiled
+    covariances are exactly symmetric."""
+    from pgm_wm import _backends
 
-    if jit == "compiled" and _jit.numba is None:
-        pytest.skip("numba is not installed")
-    monkeypatch.setenv("PGM_WM_JIT", "1" if jit == "compiled" else "0")
+    if backend == "compiled" and not _backends.compiled_available():
+        pytest.skip("numba is not installed or PGM_WM_JIT=0")
     n, T = 4, 30
     model, B = random_model(3 + m, n, m, dtype, 1e-6, k=1)
     g = torch.Generator().manual_seed(4)
     y = torch.randn(2, 3, T, m, generator=g, dtype=torch.float64).to(dtype)
     u = torch.randn(2, 3, T, 1, generator=g, dtype=torch.float64).to(dtype)
-    mask = torch.rand(2, 3, T, generator=g) > 0.3
-    y = torch.where(mask[..., None], y, torch.full_like(y, float("nan")))
+    mask = {"per_sequence": torch.rand(2, 3, T, generator=g) > 0.3,
+            "shared": (torch.rand(T, generator=g) > 0.3).expand(2, 3, T),
+            "none": None}[mask_kind]
+    if mask is not None:
+        y = torch.where(mask[..., None], y, torch.full_like(y, float("nan")))
     args = (y, model["init"], model["F"], model["H"], model["Q"], model["R"], mask, B, u)
     ref = kalman_filter_reference(*args)
-    fast = kalman_filter(*args, backend="fast")
+    fast = kalman_filter(*args, backend=backend)
     rtol, atol = TOLS[dtype]
     assert_results_close(fast, ref, rtol, atol)
     sm_ref = rts_smoother_reference(ref, model["F"], model["Q"])
-    sm = rts_smoother(fast, model["F"], model["Q"])
+    sm = rts_smoother(fast, model["F"], model["Q"], backend=backend)
     torch.testing.assert_close(sm.mean, sm_ref.mean, rtol=rtol, atol=atol)
     torch.testing.assert_close(sm.cov, sm_ref.cov, rtol=rtol, atol=atol)
-    if jit == "compiled":
+    if backend == "compiled":
         assert torch.equal(sm.cov, sm.cov.transpose(-1, -2))
         assert torch.equal(fast.posterior.cov, fast.posterior.cov.transpose(-1, -2))
-
-
-def test_compiled_loops_serve_cpu_calls_only(monkeypatch) -> None:
-    """``_jit.enabled`` admits CPU float tensors only, and ``PGM_WM_JIT=0`` turns it off."""
-    from pgm_wm import _jit
-
-    if _jit.numba is None:
-        pytest.skip("numba is not installed")
-    x = torch.zeros(2)
-    assert _jit.enabled(x, x.double())
-    assert not _jit.enabled(x.to(torch.bfloat16))
-    assert not _jit.enabled(torch.zeros(2, device="meta"))
-    monkeypatch.setenv("PGM_WM_JIT", "0")
-    assert not _jit.enabled(x)
+        if mask_kind != "per_sequence":       # one covariance sequence, broadcast over the batch
+            assert fast.posterior.cov.stride(0) == 0 and sm.cov.stride(0) == 0
