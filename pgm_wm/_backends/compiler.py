@@ -32,6 +32,7 @@ import types
 from typing import Any, Callable
 
 import numpy as np
+import torch
 from torch import Tensor
 
 _LOCK = threading.RLock()
@@ -129,8 +130,8 @@ class Kernel:
         try:
             return disp(*args)
         except Exception as err:            # noqa: BLE001 - an unreadable cache file, see the module docstring
-            if self._repaired or self.cache_dir() is None:
-                raise
+            if self._repaired or self.cache_dir() is None or type(err).__module__.startswith("numba"):
+                raise                       # numba's own errors (typing, lowering) are not the cache's
             self._repaired = True
             _say(f"the numba cache of '{self.__name__}' in {self.cache_dir()} could not be loaded "
                  f"({type(err).__name__}: {err}); rebuilding it")
@@ -146,6 +147,16 @@ def kernel(fn: Callable) -> Kernel:
 def as_array(x: Tensor) -> np.ndarray:
     """A NumPy view of a CPU tensor (no copy, strides kept; detached)."""
     return x.detach().numpy()
+
+
+def empty(*shape: int, dtype: torch.dtype) -> Tensor:
+    """An uninitialized CPU tensor allocated by NumPy, which asks the kernel for transparent
+    huge pages for large buffers: far fewer page faults when a loop first writes its outputs
+    (on a machine without them, the same as ``torch.empty``)."""
+    return torch.from_numpy(np.empty(shape, dtype=_NUMPY_DTYPES[dtype]))
+
+
+_NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
 
 
 def contiguous_array(x: Tensor) -> np.ndarray:

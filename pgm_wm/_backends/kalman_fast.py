@@ -29,7 +29,7 @@ from torch import Tensor
 
 from ..filtering import FilterResult
 from ..gaussian import _LOG_2PI, Gaussian, _predict_cov, _sandwich_operator, _sym
-from .compiler import contiguous_array
+from .compiler import as_array, contiguous_array, empty
 from .kalman_jit import filter_loop, smoother_loop
 
 def _spd_inverse(S: Tensor) -> tuple[Tensor, Tensor]:
@@ -240,11 +240,11 @@ def filter_compiled(y: Tensor, w: Tensor | None, offsets: Tensor | None, F: Tens
     dt = y.dtype
     w = torch.ones(1, N, dtype=dt) if w is None else w.T            # (T or 1, N)
     off = torch.zeros(1, n, N, dtype=dt) if offsets is None else offsets.permute(1, 2, 0)
-    M, P = torch.empty(T + 1, n, N, dtype=dt), torch.empty(T + 1, n, n, C, dtype=dt)
-    Mp, Pp, ll = torch.empty(T, n, N, dtype=dt), torch.empty(T, n, n, C, dtype=dt), torch.empty(T, N, dtype=dt)
+    M, P = empty(T + 1, n, N, dtype=dt), empty(T + 1, n, n, C, dtype=dt)
+    Mp, Pp, ll = empty(T, n, N, dtype=dt), empty(T, n, n, C, dtype=dt), empty(T, N, dtype=dt)
     M[0], P[0] = mean0.T, cov0.unsqueeze(-1) if C == 1 else cov0.permute(1, 2, 0)
     arr = contiguous_array
-    filter_loop(arr(y.permute(1, 2, 0)), arr(w), arr(off), arr(F), arr(H), arr(Q), arr(R),
+    filter_loop(as_array(y.permute(1, 2, 0)), arr(w), arr(off), arr(F), arr(H), arr(Q), arr(R),
                 M.numpy(), P.numpy(), Mp.numpy(), Pp.numpy(), ll.numpy())
     return FilterResult(_batch_first(M[:T], P[:T], batch), _batch_first(Mp, Pp, batch),
                         _batch_first(M[1:], P[1:], batch), ll.T.reshape(*batch, T))
@@ -352,7 +352,7 @@ def rts_compiled(post: Gaussian, nxt: Gaussian, F: Tensor, Q: Tensor) -> Gaussia
             x.expand(*batch, T, *event).reshape(N, T, *event).movedim(0, -1)
         return contiguous_array(x)
 
-    M, Cs = torch.empty(T, n, N, dtype=dt), torch.empty(T, n, n, C, dtype=dt)
+    M, Cs = empty(T, n, N, dtype=dt), empty(T, n, n, C, dtype=dt)
     if not smoother_loop(soa(post.mean, 1, N), soa(Pf, 2, C), soa(nxt.mean, 1, N), soa(Pn, 2, C),
                          contiguous_array(F), contiguous_array(Q), M.numpy(), Cs.numpy()):
         raise ValueError("result: a predicted covariance is not positive definite (Q too small?)")

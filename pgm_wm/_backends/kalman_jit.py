@@ -77,6 +77,17 @@ def _cholesky_solve(L, X):
 
 
 @kernel
+def _same(a, b):
+    """Whether the batch-last matrices ``a, b: (k, l, C)`` are equal bitwise (NaN never is)."""
+    for i in range(a.shape[0]):
+        for j in range(a.shape[1]):
+            for c in range(a.shape[2]):
+                if a[i, j, c] != b[i, j, c]:
+                    return False
+    return True
+
+
+@kernel
 def filter_loop(y, w, off, F, H, Q, R, M, P, Mp, Pp, ll):
     r"""The masked Kalman filter of every sequence (module docstring), batch-last, in place.
 
@@ -103,112 +114,142 @@ def filter_loop(y, w, off, F, H, Q, R, M, P, Mp, Pp, ll):
     FP = np.empty((n, n, C), dt)
     ac = np.empty(C, dt)
     # the gains and Cholesky factors per sequence (copies of the shared ones when C = 1)
+    ldc = np.empty(C, dt)                            # log det S
     Kt = Ktc if C == N else np.empty((m, n, N), dt)
     L = Lc if C == N else np.empty((m, m, N), dt)
+    ld = ldc if C == N else np.empty(N, dt)
     e = np.empty((m, N), dt)
     z = np.empty((m, N), dt)
     acc = np.empty(N, dt)
     c0 = -0.5 * m * _LOG_2PI
+    steady = False
     for t in range(T):
         Pt, Mt, Pu, mu = P[t], M[t], Pp[t], Mp[t]
         wt = w[t] if w.shape[0] == T else w[0]
         ot = off[t] if off.shape[0] == T else off[0]
-        # ---- covariances (C of them): Eqs. (kf-update), (kf-joseph), (kf-predict)
-        for i in range(n):                               # Σ⁻ Hᵀ
-            for k in range(m):
-                for c in range(C):
-                    ac[c] = 0.0
-                for j in range(n):
-                    h = H[k, j]
-                    for c in range(C):
-                        ac[c] += Pt[i, j, c] * h
-                PHt[i, k] = ac
-        for k in range(m):                               # S = H Σ⁻ Hᵀ + R
-            for k2 in range(m):
-                for c in range(C):
-                    ac[c] = R[k, k2]
-                for j in range(n):
-                    h = H[k, j]
-                    for c in range(C):
-                        ac[c] += h * PHt[j, k2, c]
-                S[k, k2] = ac
-        _cholesky(S, Lc)
-        for k in range(m):                               # Kᵀ = S⁻¹ (Σ⁻Hᵀ)ᵀ, 0 where missing
+        if steady:                                       # the covariances repeat: copy them
             for i in range(n):
-                for c in range(C):
-                    Ktc[k, i, c] = PHt[i, k, c]
-        _cholesky_solve(Lc, Ktc)
-        for k in range(m):
-            for i in range(n):
-                for c in range(C):
-                    Ktc[k, i, c] = Ktc[k, i, c] if wt[c] != 0.0 else 0.0
-        for i in range(n):                               # A = I − K H, K R
-            for j in range(n):
-                for c in range(C):
-                    ac[c] = 1.0 if i == j else 0.0
+                for j in range(n):
+                    for c in range(C):
+                        Pu[i, j, c] = Pp[t - 1, i, j, c]
+                        P[t + 1, i, j, c] = Pt[i, j, c]
+        else:
+            # ---- covariances (C of them): Eqs. (kf-update), (kf-joseph), (kf-predict)
+            for i in range(n):                               # Σ⁻ Hᵀ
                 for k in range(m):
-                    h = H[k, j]
                     for c in range(C):
-                        ac[c] -= Ktc[k, i, c] * h
-                A[i, j] = ac
-            for k2 in range(m):
-                for c in range(C):
-                    ac[c] = 0.0
-                for k in range(m):
-                    r = R[k, k2]
+                        ac[c] = 0.0
+                    for j in range(n):
+                        h = H[k, j]
+                        for c in range(C):
+                            ac[c] += Pt[i, j, c] * h
                     for c in range(C):
-                        ac[c] += Ktc[k, i, c] * r
-                KR[i, k2] = ac
-        for i in range(n):                               # A Σ⁻
-            for j in range(n):
-                for c in range(C):
-                    ac[c] = 0.0
-                for p in range(n):
-                    for c in range(C):
-                        ac[c] += A[i, p, c] * Pt[p, j, c]
-                AP[i, j] = ac
-        for i in range(n):                               # Σ⁺ = A Σ⁻ Aᵀ + K R Kᵀ (Joseph form)
-            for j in range(i + 1):
-                for c in range(C):
-                    ac[c] = 0.0
-                for p in range(n):
-                    for c in range(C):
-                        ac[c] += AP[i, p, c] * A[j, p, c]
+                        PHt[i, k, c] = ac[c]
+            for k in range(m):                               # S = H Σ⁻ Hᵀ + R
                 for k2 in range(m):
                     for c in range(C):
-                        ac[c] += KR[i, k2, c] * Ktc[k2, j, c]
-                Pu[i, j] = ac
-                Pu[j, i] = ac
-        for i in range(n):                               # Σ⁻_{t+1} = F Σ⁺ Fᵀ + Q
-            for j in range(n):
-                for c in range(C):
-                    ac[c] = 0.0
-                for p in range(n):
-                    f = F[i, p]
+                        ac[c] = R[k, k2]
+                    for j in range(n):
+                        h = H[k, j]
+                        for c in range(C):
+                            ac[c] += h * PHt[j, k2, c]
                     for c in range(C):
-                        ac[c] += f * Pu[p, j, c]
-                FP[i, j] = ac
-        for i in range(n):
-            for j in range(i + 1):
+                        S[k, k2, c] = ac[c]
+            _cholesky(S, Lc)
+            for c in range(C):
+                ac[c] = 0.0
+            for k in range(m):
                 for c in range(C):
-                    ac[c] = 0.0
-                for p in range(n):
-                    f = F[j, p]
+                    ac[c] += 2.0 * math.log(Lc[k, k, c])
+            for c in range(C):
+                ldc[c] = ac[c]
+            for k in range(m):                               # Kᵀ = S⁻¹ (Σ⁻Hᵀ)ᵀ, 0 where missing
+                for i in range(n):
                     for c in range(C):
-                        ac[c] += FP[i, p, c] * f
-                for c in range(C):
-                    P[t + 1, i, j, c] = ac[c] + Q[i, j]
-                    P[t + 1, j, i, c] = ac[c] + Q[j, i]
-        if C != N:                                       # shared: the same gain for every sequence
+                        Ktc[k, i, c] = PHt[i, k, c]
+            _cholesky_solve(Lc, Ktc)
             for k in range(m):
                 for i in range(n):
-                    g = Ktc[k, i, 0]
-                    for b in range(N):
-                        Kt[k, i, b] = g
+                    for c in range(C):
+                        Ktc[k, i, c] = Ktc[k, i, c] if wt[c] != 0.0 else 0.0
+            for i in range(n):                               # A = I − K H, K R
+                for j in range(n):
+                    for c in range(C):
+                        ac[c] = 1.0 if i == j else 0.0
+                    for k in range(m):
+                        h = H[k, j]
+                        for c in range(C):
+                            ac[c] -= Ktc[k, i, c] * h
+                    for c in range(C):
+                        A[i, j, c] = ac[c]
                 for k2 in range(m):
-                    g = Lc[k, k2, 0]
-                    for b in range(N):
-                        L[k, k2, b] = g
+                    for c in range(C):
+                        ac[c] = 0.0
+                    for k in range(m):
+                        r = R[k, k2]
+                        for c in range(C):
+                            ac[c] += Ktc[k, i, c] * r
+                    for c in range(C):
+                        KR[i, k2, c] = ac[c]
+            for i in range(n):                               # A Σ⁻
+                for j in range(n):
+                    for c in range(C):
+                        ac[c] = 0.0
+                    for p in range(n):
+                        for c in range(C):
+                            ac[c] += A[i, p, c] * Pt[p, j, c]
+                    for c in range(C):
+                        AP[i, j, c] = ac[c]
+            for i in range(n):                               # Σ⁺ = A Σ⁻ Aᵀ + K R Kᵀ (Joseph form)
+                for j in range(i + 1):
+                    for c in range(C):
+                        ac[c] = 0.0
+                    for p in range(n):
+                        for c in range(C):
+                            ac[c] += AP[i, p, c] * A[j, p, c]
+                    for k2 in range(m):
+                        for c in range(C):
+                            ac[c] += KR[i, k2, c] * Ktc[k2, j, c]
+                    for c in range(C):
+                        Pu[i, j, c] = ac[c]
+                    for c in range(C):
+                        Pu[j, i, c] = ac[c]
+            for i in range(n):                               # Σ⁻_{t+1} = F Σ⁺ Fᵀ + Q
+                for j in range(n):
+                    for c in range(C):
+                        ac[c] = 0.0
+                    for p in range(n):
+                        f = F[i, p]
+                        for c in range(C):
+                            ac[c] += f * Pu[p, j, c]
+                    for c in range(C):
+                        FP[i, j, c] = ac[c]
+            for i in range(n):
+                for j in range(i + 1):
+                    for c in range(C):
+                        ac[c] = 0.0
+                    for p in range(n):
+                        f = F[j, p]
+                        for c in range(C):
+                            ac[c] += FP[i, p, c] * f
+                    for c in range(C):
+                        P[t + 1, i, j, c] = ac[c] + Q[i, j]
+                        P[t + 1, j, i, c] = ac[c] + Q[j, i]
+            if C != N:                                       # shared: the same gain for every sequence
+                for k in range(m):
+                    for i in range(n):
+                        g = Ktc[k, i, 0]
+                        for b in range(N):
+                            Kt[k, i, b] = g
+                    for k2 in range(m):
+                        g = Lc[k, k2, 0]
+                        for b in range(N):
+                            L[k, k2, b] = g
+                g = ldc[0]
+                for b in range(N):
+                    ld[b] = g
+            # without a mask, once Σ⁻_{t+1} = Σ⁻_t bitwise every later step repeats this one
+            steady = w.shape[0] == 1 and _same(P[t + 1], Pt)
         # ---- means (N of them)
         for k in range(m):                               # e = y − H μ⁻ (0 where missing)
             for b in range(N):
@@ -220,7 +261,7 @@ def filter_loop(y, w, off, F, H, Q, R, M, P, Mp, Pp, ll):
             for b in range(N):
                 e[k, b] = acc[b] if wt[b] != 0.0 else 0.0
         for b in range(N):                               # log-likelihood, Eq. (kf-loglik)
-            acc[b] = 0.0
+            acc[b] = ld[b]
         for k in range(m):
             for b in range(N):
                 v = e[k, b]
@@ -228,7 +269,7 @@ def filter_loop(y, w, off, F, H, Q, R, M, P, Mp, Pp, ll):
                     v -= L[k, p, b] * z[p, b]
                 v /= L[k, k, b]
                 z[k, b] = v
-                acc[b] += v * v + 2.0 * math.log(L[k, k, b])
+                acc[b] += v * v
         for b in range(N):
             ll[t, b] = c0 - 0.5 * acc[b] if wt[b] != 0.0 else 0.0
         for i in range(n):                               # μ⁺ = μ⁻ + K e
@@ -237,7 +278,8 @@ def filter_loop(y, w, off, F, H, Q, R, M, P, Mp, Pp, ll):
             for k in range(m):
                 for b in range(N):
                     acc[b] += Kt[k, i, b] * e[k, b]
-            mu[i] = acc
+            for b in range(N):
+                mu[i, b] = acc[b]
         for i in range(n):                               # μ⁻_{t+1} = F μ⁺ + B u
             for b in range(N):
                 acc[b] = ot[i, b]
@@ -245,7 +287,8 @@ def filter_loop(y, w, off, F, H, Q, R, M, P, Mp, Pp, ll):
                 f = F[i, j]
                 for b in range(N):
                     acc[b] += f * mu[j, b]
-            M[t + 1, i] = acc
+            for b in range(N):
+                M[t + 1, i, b] = acc[b]
 
 
 @kernel
@@ -270,66 +313,86 @@ def smoother_loop(mf, Pf, mp, Pn, F, Q, Ms, Cs):
     acc = np.empty(N, dt)
     Ms[T - 1] = mf[T - 1]
     Cs[T - 1] = Pf[T - 1]
+    cs_repeats = False                               # Σˢ_{t+1} = Σˢ_{t+2} bitwise
     for t in range(T - 2, -1, -1):
-        # ---- covariances (C of them)
-        for i in range(n):
-            for j in range(n):
-                for c in range(C):
-                    Sp[i, j, c] = 0.5 * (Pn[t, i, j, c] + Pn[t, j, i, c])
-        _cholesky(Sp, Lc)
-        for i in range(n):
-            for c in range(C):
-                if not Lc[i, i, c] > 0.0:
-                    return False
-        for i in range(n):                               # F Σ⁺
-            for j in range(n):
-                for c in range(C):
-                    ac[c] = 0.0
-                for p in range(n):
-                    f = F[i, p]
-                    for c in range(C):
-                        ac[c] += f * Pf[t, p, j, c]
-                Gtc[i, j] = ac
-        _cholesky_solve(Lc, Gtc)
-        for i in range(n):                               # A = I − G F
-            for j in range(n):
-                for c in range(C):
-                    ac[c] = 1.0 if i == j else 0.0
-                for p in range(n):
-                    f = F[p, j]
-                    for c in range(C):
-                        ac[c] -= Gtc[p, i, c] * f
-                A[i, j] = ac
-        for i in range(n):                               # A Σ⁺ and G (Q + Σˢ_{t+1})
-            for j in range(n):
-                for c in range(C):
-                    ac[c] = 0.0
-                for p in range(n):
-                    for c in range(C):
-                        ac[c] += A[i, p, c] * Pf[t, p, j, c]
-                AP[i, j] = ac
-                for c in range(C):
-                    ac[c] = 0.0
-                for p in range(n):
-                    q = Q[p, j]
-                    for c in range(C):
-                        ac[c] += Gtc[p, i, c] * (q + Cs[t + 1, p, j, c])
-                GQC[i, j] = ac
-        for i in range(n):                               # Σˢ = A Σ⁺ Aᵀ + G (Q + Σˢ_{t+1}) Gᵀ
-            for j in range(i + 1):
-                for c in range(C):
-                    ac[c] = 0.0
-                for p in range(n):
-                    for c in range(C):
-                        ac[c] += AP[i, p, c] * A[j, p, c] + GQC[i, p, c] * Gtc[p, j, c]
-                Cs[t, i, j] = ac
-                Cs[t, j, i] = ac
-        if C != N:
+        # ---- covariances (C of them). Where the filter's covariances of step t equal those of
+        # step t + 1 bitwise (its steady state), the gains of step t + 1 are reused, and so is
+        # Σˢ_{t+1} once the smoothed covariances repeat too: the same numbers, computed once.
+        same_inputs = t < T - 2 and _same(Pf[t], Pf[t + 1]) and _same(Pn[t], Pn[t + 1])
+        if not same_inputs:
             for i in range(n):
                 for j in range(n):
-                    g = Gtc[i, j, 0]
-                    for b in range(N):
-                        Gt[i, j, b] = g
+                    for c in range(C):
+                        Sp[i, j, c] = 0.5 * (Pn[t, i, j, c] + Pn[t, j, i, c])
+            _cholesky(Sp, Lc)
+            for i in range(n):
+                for c in range(C):
+                    if not Lc[i, i, c] > 0.0:
+                        return False
+            for i in range(n):                           # F Σ⁺
+                for j in range(n):
+                    for c in range(C):
+                        ac[c] = 0.0
+                    for p in range(n):
+                        f = F[i, p]
+                        for c in range(C):
+                            ac[c] += f * Pf[t, p, j, c]
+                    for c in range(C):
+                        Gtc[i, j, c] = ac[c]
+            _cholesky_solve(Lc, Gtc)
+            for i in range(n):                           # A = I − G F
+                for j in range(n):
+                    for c in range(C):
+                        ac[c] = 1.0 if i == j else 0.0
+                    for p in range(n):
+                        f = F[p, j]
+                        for c in range(C):
+                            ac[c] -= Gtc[p, i, c] * f
+                    for c in range(C):
+                        A[i, j, c] = ac[c]
+            for i in range(n):                           # A Σ⁺
+                for j in range(n):
+                    for c in range(C):
+                        ac[c] = 0.0
+                    for p in range(n):
+                        for c in range(C):
+                            ac[c] += A[i, p, c] * Pf[t, p, j, c]
+                    for c in range(C):
+                        AP[i, j, c] = ac[c]
+            if C != N:
+                for i in range(n):
+                    for j in range(n):
+                        g = Gtc[i, j, 0]
+                        for b in range(N):
+                            Gt[i, j, b] = g
+        if same_inputs and cs_repeats:
+            for i in range(n):
+                for j in range(n):
+                    for c in range(C):
+                        Cs[t, i, j, c] = Cs[t + 1, i, j, c]
+        else:
+            for i in range(n):                           # G (Q + Σˢ_{t+1})
+                for j in range(n):
+                    for c in range(C):
+                        ac[c] = 0.0
+                    for p in range(n):
+                        q = Q[p, j]
+                        for c in range(C):
+                            ac[c] += Gtc[p, i, c] * (q + Cs[t + 1, p, j, c])
+                    for c in range(C):
+                        GQC[i, j, c] = ac[c]
+            for i in range(n):                           # Σˢ = A Σ⁺ Aᵀ + G (Q + Σˢ_{t+1}) Gᵀ
+                for j in range(i + 1):
+                    for c in range(C):
+                        ac[c] = 0.0
+                    for p in range(n):
+                        for c in range(C):
+                            ac[c] += AP[i, p, c] * A[j, p, c] + GQC[i, p, c] * Gtc[p, j, c]
+                    for c in range(C):
+                        Cs[t, i, j, c] = ac[c]
+                    for c in range(C):
+                        Cs[t, j, i, c] = ac[c]
+            cs_repeats = _same(Cs[t], Cs[t + 1])
         # ---- means (N of them): μˢ = μ⁺ + G (μˢ_{t+1} − μ⁻_{t+1})
         for i in range(n):
             for b in range(N):
@@ -340,5 +403,6 @@ def smoother_loop(mf, Pf, mp, Pn, F, Q, Ms, Cs):
             for p in range(n):
                 for b in range(N):
                     acc[b] += Gt[p, i, b] * d[p, b]
-            Ms[t, i] = acc
+            for b in range(N):
+                Ms[t, i, b] = acc[b]
     return True
