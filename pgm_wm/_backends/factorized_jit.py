@@ -186,9 +186,12 @@ def _differentiable_backward(ctx, inputs: list, grad_outputs: tuple) -> tuple:
     """The gradients of the inputs as a differentiable function of the inputs and of
     ``grad_outputs``: autograd through the tensor path (the class docstring)."""
     wanted = [i for i, x in enumerate(inputs) if x is not None and ctx.needs_input_grad[i]]
-    outs = diagonal_steps(*inputs)
+    # a node of its own per input: the partial derivatives, not total ones (coef is computed
+    # from A before the call, and the gradient of A must not pass through coef twice)
+    xs = [x.view_as(x) if i in wanted else x for i, x in enumerate(inputs)]
+    outs = diagonal_steps(*xs)
     pairs = [(o, g) for o, g in zip(outs, grad_outputs) if g is not None and o.requires_grad]
-    grads = torch.autograd.grad([o for o, _ in pairs], [inputs[i] for i in wanted], [g for _, g in pairs],
+    grads = torch.autograd.grad([o for o, _ in pairs], [xs[i] for i in wanted], [g for _, g in pairs],
                                 create_graph=True, allow_unused=True) if pairs and wanted else ()
     out: list = [None] * len(inputs)
     for i, g in zip(wanted, grads):
