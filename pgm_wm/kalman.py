@@ -55,7 +55,7 @@ from ._checks import (
 from .filtering import FilterResult
 from .gaussian import Gaussian, _predict_core, _sym, condition_with_evidence
 from ._backends import Backend, implementation, select
-from ._backends.kalman_fast import compact, filter_fast, rts_compiled
+from ._backends.kalman_fast import compact, filter_fast, rts_compiled, smoothing_precision
 
 __all__ = [
     "kf_predict",
@@ -398,6 +398,10 @@ def rts_smoother(result: FilterResult, F: Tensor, Q: Tensor, *, backend: Backend
     views, as :func:`kalman_filter` returns them when no sequence has its own mask) are
     smoothed once.
 
+    float32 beliefs are smoothed in float64 and the result rounded to float32 once: the
+    backward recursion amplifies rounding errors, and with a process noise far below the
+    filtered variances float32 gave negative variances (tested against float64).
+
     ``backend``: as in :func:`kalman_filter`: ``"reference"`` (:func:`rts_smoother_reference`),
     ``"tensor"`` (above), ``"compiled"`` (numba loop, CPU, unbatched ``F, Q``, no gradient),
     ``"parallel"`` (:func:`pgm_wm.kalman_parallel.parallel_rts_smoother`), ``"auto"``/``"fast"``
@@ -408,12 +412,16 @@ def rts_smoother(result: FilterResult, F: Tensor, Q: Tensor, *, backend: Backend
     if backend == "parallel":
         return implementation("rts_smoother", "parallel")(result, F, Q)
     post, nxt = _check_smoother_inputs(result, F, Q)
-    T, n = post.mean.shape[-2], post.dim
-    batch = post.batch_shape[:-1]
     which = select("rts_smoother", post.mean, post.cov, nxt.mean, nxt.cov, F, Q, backend=backend,
                    shared_params=F.ndim == 2 and Q.ndim == 2)
+    dtype = F.dtype
+    m_f, P_f, m_n, P_n, F, Q = smoothing_precision(post, nxt, F, Q)     # float32: run in float64
+    post, nxt = Gaussian(m_f, P_f), Gaussian(m_n, P_n)
     if which == "compiled":
-        return rts_compiled(post, nxt, F, Q)
+        sm = rts_compiled(post, nxt, F, Q)
+        return sm if sm.mean.dtype == dtype else Gaussian(sm.mean.to(dtype), _cast_cov(sm.cov, dtype))
+    T, n = post.mean.shape[-2], post.dim
+    batch = post.batch_shape[:-1]
     # Covariances shared by the batch (broadcast views from kalman_filter) are processed once.
     shared = Gaussian(post.mean, compact(post.cov, 3)), Gaussian(nxt.mean, compact(nxt.cov, 3))
     G, L = _smoother_gains(shared[0], shared[1], F, Q)
@@ -430,4 +438,9 @@ def rts_smoother(result: FilterResult, F: Tensor, Q: Tensor, *, backend: Backend
     mean = torch.stack(means[::-1], -2)
     cov_shape = torch.broadcast_shapes(*(c.shape for c in covs))
     cov = torch.stack([c.expand(cov_shape) for c in covs[::-1]], -3)
-    return Gaussian(mean, cov.expand(*batch, T, n, n))
+    return Gaussian(mean.to(dtype), _cast_cov(cov, dtype).expand(*batch, T, n, n))
+
+
+def _cast_cov(cov: Tensor, dtype: torch.dtype) -> Tensor:
+    """``cov`` in ``dtype``, broadcast views kept broadcast."""
+    return cov if cov.dtype == dtype else compact(cov, 3).to(dtype).expand(cov.shape)

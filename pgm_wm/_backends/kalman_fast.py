@@ -359,6 +359,21 @@ def rts_compiled(post: Gaussian, nxt: Gaussian, F: Tensor, Q: Tensor) -> Gaussia
     return _batch_first(M, Cs, batch)
 
 
+def smoothing_precision(post: Gaussian, nxt: Gaussian, F: Tensor, Q: Tensor) -> tuple[Tensor, ...]:
+    r"""The filter's beliefs and ``F, Q`` in the dtype the RTS recursion runs in: float64 for
+    float32 inputs (broadcast covariances stay broadcast views). Why: the backward recursion
+    :math:`\Sigma^s_t = L_t + G_t\Sigma^s_{t+1}G_t^\top` multiplies the rounding errors of
+    :math:`\Sigma^s_{t+1}` by :math:`G_t` twice per step, and with a process noise far below
+    the filtered variance (``Q`` ~ 1e-12, ``R`` ~ 1e12) :math:`G_t \approx F^{-1}` is expanding:
+    in float32 the smoothed variances came out negative (issue 24); in float64 they do not,
+    and the result is rounded to float32 once. Returns ``(post.mean, post.cov, nxt.mean,
+    nxt.cov, F, Q)``."""
+    if F.dtype != torch.float32:
+        return post.mean, post.cov, nxt.mean, nxt.cov, F, Q
+    up = lambda x, k: compact(x, k).double().expand(x.shape)  # noqa: E731
+    return up(post.mean, 2), up(post.cov, 3), up(nxt.mean, 2), up(nxt.cov, 3), F.double(), Q.double()
+
+
 def compact(x: Tensor, k: int) -> Tensor:
     """Collapse leading dimensions of ``x`` that are broadcast views (stride 0) to size 1,
     keeping the last ``k`` dimensions; the result broadcasts back to ``x``'s shape."""
