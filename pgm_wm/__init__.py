@@ -6,7 +6,6 @@ Modules, in the order the book introduces them:
 * :mod:`pgm_wm.filtering`        ``FilterResult`` (every filter's output) and the reference filter loop
 * :mod:`pgm_wm.gaussian`         dense Gaussian algebra (marginalize, joint, condition)        — Chapter 1
 * :mod:`pgm_wm.kalman`           Kalman predict/update, filter, RTS smoother                   — Chapter 1
-* :mod:`pgm_wm.kalman_fast`      the fast sequential Kalman backend (tested equal to the loop)  — Chapter 1
 * :mod:`pgm_wm.kalman_parallel`  parallel-in-time Kalman filter and smoother (associative scan) — Chapter 1
 * :mod:`pgm_wm.lgssm`            ``LinearGaussianSSM`` parameters and ``fit_mle``              — Chapter 1
 * :mod:`pgm_wm.aggregation`      Bayesian aggregation, set updates, set encoders               — Chapter 2

@@ -46,9 +46,9 @@ from ._checks import (check_finite, check_last_dims, check_mask, check_nonnegati
                       check_tensor)
 from .beliefs import DiagGaussian, FactorizedBelief
 from .filtering import FilterResult, filter_loop
-from . import _jit
-from .factorized_jit import diagonal_filter_jit
-from .kalman_fast import _scripted
+from ._backends import Backend, select
+from ._backends.factorized_fast import diagonal_steps
+from ._backends.factorized_jit import diagonal_filter_jit
 
 __all__ = [
     "FactorizedBelief",
@@ -466,6 +466,7 @@ def diagonal_factorized_filter(
     inputs: FactorizedBelief | None = None,
     *,
     validate: bool = True,
+    backend: Backend = "auto",
 ) -> FilterResult[FactorizedBelief]:
     r"""Fast path of :func:`factorized_filter` (same signature, same result) for a constant
     transition whose four :math:`m\times m` blocks are **diagonal** (the MTS3 fast level), written
@@ -488,31 +489,29 @@ def diagonal_factorized_filter(
     likewise for :math:`\sigma^{l-}, \sigma^{s-}`, plus ``inputs.at(t)``.
     ``validate`` also checks that the blocks of ``A`` are diagonal.
 
-    For CPU tensors the loop runs compiled, lane by lane, with a hand-written backward pass
-    (:mod:`pgm_wm.factorized_jit`); elsewhere (or with ``PGM_WM_JIT=0``) as tensor operations
-    on the packed state (``z = [z^u, z^l]``, ``s = [σ^u, σ^s, σ^l]``, batch flattened), about
-    12 per step (:func:`_diagonal_steps`). Both are tested equal to :func:`factorized_filter`,
-    values and gradients, in float32 and float64; :func:`parallel_factorized_filter` is the
-    same filter by associative scan.
+    ``backend`` (the table of :mod:`pgm_wm._backends`): ``"compiled"``, the loop compiled lane by
+    lane with a hand-written backward pass (:mod:`pgm_wm._backends.factorized_jit`; second
+    derivatives, ``create_graph=True``, through the tensor path); ``"tensor"``, tensor operations
+    on the packed state (``z = [z^u, z^l]``, ``s = [σ^u, σ^s, σ^l]``, batch flattened), about 12
+    per step (:mod:`pgm_wm._backends.factorized_fast`), differentiable to any order, any device,
+    ``torch.func`` transforms; ``"reference"``, :func:`factorized_filter`; ``"parallel"``,
+    :func:`parallel_factorized_filter`; ``"auto"`` (or ``"fast"``): compiled for CPU float
+    tensors without a ``torch.func`` transform where numba is installed and ``PGM_WM_JIT`` is
+    not ``0``, tensor otherwise. All are tested equal to :func:`factorized_filter`, values and
+    gradients, in float32 and float64.
     """
+    which = select("diagonal_factorized_filter", observation.mean, observation.var, A, trans_var, prior.mean,
+                   backend=backend, masked=mask is not None)
+    if which == "reference":
+        return factorized_filter(prior, A, trans_var, observation, mask, inputs, validate=validate)
+    if which == "parallel":
+        return parallel_factorized_filter(prior, A, trans_var, observation, mask, inputs, validate=validate)
     d = _diagonal_problem(prior, A, trans_var, observation, mask, inputs, validate)
-    N, T, m, z, s = d.N, d.T, d.m, d.z0, d.s0
-    if _jit.enabled(observation.mean, A):          # compiled loop with its own backward pass
-        in_z = torch.zeros(N, T, 2 * m, dtype=z.dtype, device=z.device) if d.in_z is None else d.in_z
-        Z, S, Zp, Sp, z_last, s_last = diagonal_filter_jit(z, s, d.w, d.r, d.mu, in_z, d.in_s, A, d.coef)
+    if which == "compiled":          # compiled loop with its own backward pass
+        in_z = torch.zeros(d.N, d.T, 2 * d.m, dtype=d.z0.dtype, device=d.z0.device) if d.in_z is None else d.in_z
+        Z, S, Zp, Sp, z_last, s_last = diagonal_filter_jit(d.z0, d.s0, d.w, d.r, d.mu, in_z, d.in_s, A, d.coef)
     else:
-        # tensor operations on the packed state: the predict is two GEMMs with constant matrices
-        # (z⁻ = z⁺ Aᵀ + input, s⁻ = s⁺ Cs + bias); TorchScript without a gradient (the
-        # interpreter's cost per operation dominates), plain Python with one
-        Cs = torch.diag_embed(d.coef).permute(0, 2, 1, 3).reshape(3 * m, 3 * m)
-        steps_of = lambda x: [] if x is None else list(x.unbind(1))  # noqa: E731
-        leaves = (z, s, d.w, d.r, A, Cs, d.in_s) + (() if d.in_z is None else (d.in_z,))
-        needs_grad = torch.is_grad_enabled() and any(x.requires_grad for x in leaves)
-        steps = _diagonal_steps if needs_grad else _scripted(_diagonal_steps)
-        zs, ss_, zps, sps, z_last, s_last = steps(
-            z, s, steps_of(d.w), steps_of(d.r), steps_of(d.mu), steps_of(None if d.mu is None else 1.0 - d.mu),
-            steps_of(d.in_z), steps_of(d.in_s), A.T, Cs, m)
-        Z, S, Zp, Sp = (torch.stack(x, 1) for x in (zs, ss_, zps, sps))
+        Z, S, Zp, Sp, z_last, s_last = diagonal_steps(d.z0, d.s0, d.w, d.r, d.mu, d.in_z, d.in_s, A, d.coef)
     return FilterResult(d.packed(Z, S), d.packed(Zp, Sp),
                         d.packed(torch.cat([Z[:, 1:], z_last[:, None]], 1), torch.cat([S[:, 1:], s_last[:, None]], 1)))
 
@@ -573,38 +572,3 @@ def parallel_factorized_filter(
         return d.packed(Z, S)
 
     return FilterResult(packed(m_prior, P_prior), packed(m_post, P_post), packed(m_next, P_next))
-
-
-def _diagonal_steps(z: Tensor, s: Tensor, ws: list[Tensor], rs: list[Tensor], ms: list[Tensor],
-                    unobs: list[Tensor], in_z: list[Tensor], in_s: list[Tensor], At: Tensor, Cs: Tensor, m: int
-                    ) -> tuple[list[Tensor], list[Tensor], list[Tensor], list[Tensor], Tensor, Tensor]:
-    """The loop of :func:`diagonal_factorized_filter` on the packed state (``z = [z^u, z^l]``,
-    ``s = [σ^u, σ^s, σ^l]``, batch flattened): Eq. (rkn-update) elementwise, Eq. (rkn-predict)
-    as two GEMMs. Empty ``ms``/``unobs`` = no mask, empty ``in_z`` = no input mean. Run compiled
-    by TorchScript (differentiable; it removes the interpreter's cost per operation), plain
-    Python where that fails; returns the priors, posteriors and the last prediction."""
-    N = z.shape[0]
-    zs: list[Tensor] = []
-    ss_: list[Tensor] = []
-    zps: list[Tensor] = []
-    sps: list[Tensor] = []
-    for t in range(len(ws)):
-        su, ss, sl = s.view(N, 3, m).unbind(1)
-        zu = z.view(N, 2, m).unbind(1)[0]
-        s2 = s.view(N, 3, m)[:, :2]                                  # [σ^u, σ^s]
-        if len(ms) == 0:
-            g = (su + rs[t]).reciprocal()
-            r = rs[t] * g
-        else:
-            g = torch.div(ms[t], su + rs[t])
-            r = torch.addcmul(unobs[t], rs[t], g)                    # σ^obs ⊘ S, exactly 1 where missing
-        ge = g * (ws[t] - zu)
-        z_p = torch.addcmul(z.view(N, 2, m), s2, ge.unsqueeze(1)).view(N, 2 * m)   # z + [σ^u; σ^s] g (w − z^u)
-        s_p = torch.cat([(s2 * r.unsqueeze(1)).view(N, 2 * m), torch.addcmul(sl, ss, ss * g, value=-1.0)], -1)
-        zs.append(z)
-        ss_.append(s)
-        zps.append(z_p)
-        sps.append(s_p)
-        z = torch.mm(z_p, At) if len(in_z) == 0 else torch.addmm(in_z[t], z_p, At)
-        s = torch.addmm(in_s[t], s_p, Cs)
-    return zs, ss_, zps, sps, z, s

@@ -12,8 +12,9 @@ with the prior :math:`z_1 \sim \mathcal N(\mu_1, \Sigma_1)` given by ``init``.
   form Eq. (kf-joseph), which stays positive semi-definite;
 * :func:`kf_predict` (Eq. kf-predict) = Eq. (gauss-marginal) with one cause;
 * :func:`kalman_filter_reference` is the book's loop, "update, then predict", built from these
-  two steps only; :func:`kalman_filter` selects a backend with the same signature and the same
-  numbers (tested): ``"reference"``, ``"fast"`` (below) or ``"parallel"``
+  two steps only; :func:`kalman_filter` has the same signature and the same numbers (tested)
+  with a choice of backends (``backend=``, chosen by the table of :mod:`pgm_wm._backends`):
+  ``"reference"``, ``"tensor"``, ``"compiled"`` (below) or ``"parallel"``
   (:mod:`pgm_wm.kalman_parallel`, the associative scan);
 * :func:`rts_smoother` (Eq. rts) runs backwards over a :class:`~pgm_wm.filtering.FilterResult`;
   :func:`rts_smoother_reference` is its readable loop.
@@ -24,20 +25,20 @@ A missing observation (``mask`` False) skips the update: the posterior equals th
 step contributes 0 to the log-likelihood (Eq. kf-loglik). Everything is batched over leading
 dimensions and differentiable.
 
-The fast backend (:mod:`pgm_wm.kalman_fast`) uses that the covariances (the Riccati recursion) do not depend on the
-observed values. When the parameters are unbatched and every sequence has the same mask (or
-none), one covariance sequence serves the whole batch, and without a mask and a gradient the
-recursion stops once the prior covariance repeats bit for bit (the steady state). The means are
-then a linear recursion :math:`\mu^-_{t+1} = F(I - K_tH)\mu^-_t + FK_ty_t + Bu_t`: one small GEMM
-per step, the posteriors and log-likelihoods for all steps at once afterwards. With missing
-steps every sequence carries its own covariances: on the CPU without a gradient the loop and the
-smoother's backward loop run compiled (:mod:`pgm_wm.kalman_jit`), otherwise as batched tensor
-operations with the small innovation matrices inverted by closed formulas (``m ≤ 2``).
+The fast backends (:mod:`pgm_wm._backends.kalman_fast`) use that the covariances (the Riccati
+recursion), the gains and the smoother gains do not depend on the observed values. When the
+parameters are unbatched and every sequence has the same mask (or none), one covariance
+sequence serves the whole batch, and only the means are computed per sequence: the linear
+recursion :math:`\mu^-_{t+1} = F(I - K_tH)\mu^-_t + FK_ty_t + Bu_t`. With a mask per sequence
+every sequence carries its own covariances. On the CPU without a gradient both run as compiled
+loops (``"compiled"``, :mod:`pgm_wm._backends.kalman_jit`, numba), filter and smoother;
+otherwise (``"tensor"``) as batched tensor operations: the shared recursion once (stopping at
+its bitwise steady state when nothing is masked) and the means as one small GEMM per step, or
+per-sequence covariances with the small innovation matrices inverted by closed formulas
+(``m ≤ 2``).
 """
 
 from __future__ import annotations
-
-from typing import Literal
 
 import torch
 from torch import Tensor
@@ -53,8 +54,8 @@ from ._checks import (
 )
 from .filtering import FilterResult
 from .gaussian import Gaussian, _predict_core, _sym, condition_with_evidence
-from . import _jit
-from .kalman_fast import _compact, _filter_fast, _rts_jit
+from ._backends import Backend, implementation, select
+from ._backends.kalman_fast import compact, filter_fast, rts_compiled, smoothing_precision
 
 __all__ = [
     "kf_predict",
@@ -65,9 +66,6 @@ __all__ = [
     "rts_smoother_reference",
     "stack_gaussians",
 ]
-
-Backend = Literal["auto", "reference", "fast", "parallel"]
-
 
 # ---------------------------------------------------------------------------------------------
 # The two steps
@@ -215,11 +213,12 @@ def _check_filter_inputs(
         if B is not None and u is not None:
             check_finite("B", B.detach())
             check_finite("u", u.detach())
-        observed = y.detach() if mask is None else y.detach()[mask]
-        if not bool(torch.isfinite(observed).all()):
-            raise ValueError("y: contains NaN or infinite values at observed steps")
     if mask is not None:
         y = torch.where(mask[..., None], y, torch.zeros((), dtype=y.dtype))
+    # any NaN or inf makes the sum non-finite; a finite sum is the cheap common case (an
+    # overflowing sum of finite values falls through to the elementwise check)
+    if validate and not bool(torch.isfinite(y.detach().sum())) and not bool(torch.isfinite(y.detach()).all()):
+        raise ValueError("y: contains NaN or infinite values at observed steps")
     return y, mask, offsets, batch
 
 
@@ -227,7 +226,7 @@ def _diagnose(result: FilterResult, F: Tensor, mask: Tensor | None) -> None:
     """After a run from valid inputs: raise a ``ValueError`` naming the real cause if a
     covariance overflowed (an explosive ``F`` over steps without observations) or an innovation
     covariance lost positive definiteness (a dtype too short for the model's variance ratio)."""
-    cov = _compact(result.next_prior.cov.detach(), 3)
+    cov = compact(result.next_prior.cov.detach(), 3)
     # a covariance that overflowed stays non-finite, so the last step tells (cheap)
     if not bool(torch.isfinite(cov[..., -1, :, :]).all()):
         finite_t = torch.isfinite(cov).flatten(-2).all(-1)      # (..., T)
@@ -302,22 +301,23 @@ def kalman_filter(
     ``y`` finite where observed, one dtype (float32 or float64); after the run, an overflowing
     covariance is reported naming ``F`` and a lost positive definiteness naming ``R``.
 
-    ``backend``: ``"reference"`` (:func:`kalman_filter_reference`), ``"fast"`` (the module
-    docstring), ``"parallel"`` (:func:`pgm_wm.kalman_parallel.parallel_kalman_filter`,
-    O(log T) sequential depth), ``"auto"`` = ``"fast"``. All give the same numbers up to
-    rounding (tested in float32 and float64).
+    ``backend`` (the table of :mod:`pgm_wm._backends`): ``"reference"``
+    (:func:`kalman_filter_reference`); ``"tensor"`` (batched tensor operations, differentiable,
+    any device; the module docstring); ``"compiled"`` (numba loops, CPU, unbatched ``F, H, Q, R``,
+    no gradient; raises ``ValueError`` where it cannot serve the call); ``"parallel"``
+    (:func:`pgm_wm.kalman_parallel.parallel_kalman_filter`, :math:`O(\log T)` sequential depth);
+    ``"auto"`` (or ``"fast"``): ``"compiled"`` where it can serve the call, ``"tensor"``
+    otherwise. All give the same numbers up to rounding (tested in float32 and float64).
     """
     if backend == "reference":
         result = kalman_filter_reference(y, init, F, H, Q, R, mask, B, u, validate=validate)
     elif backend == "parallel":
-        from .kalman_parallel import parallel_kalman_filter
-
-        result = parallel_kalman_filter(y, init, F, H, Q, R, mask, B, u, validate=validate)
-    elif backend in ("auto", "fast"):
-        y, mask, offsets, batch = _check_filter_inputs(y, init, F, H, Q, R, mask, B, u, validate)
-        result = _filter_fast(y, init, F, H, Q, R, mask, offsets, batch)
+        result = implementation("kalman_filter", "parallel")(y, init, F, H, Q, R, mask, B, u, validate=validate)
     else:
-        raise ValueError(f"backend: expected 'auto', 'reference', 'fast' or 'parallel', got {backend!r}")
+        y, mask, offsets, batch = _check_filter_inputs(y, init, F, H, Q, R, mask, B, u, validate)
+        which = select("kalman_filter", y, init.mean, init.cov, F, H, Q, R, offsets, backend=backend,
+                       masked=mask is not None, shared_params=all(x.ndim == 2 for x in (F, H, Q, R)))
+        result = filter_fast(y, init, F, H, Q, R, mask, offsets, batch, compiled=which == "compiled")
     if validate:
         _diagnose(result, F, mask if mask is None else check_mask("mask", mask, tuple(y.shape[:-1])))
     return result
@@ -338,9 +338,10 @@ def _check_smoother_inputs(result: FilterResult, F: Tensor, Q: Tensor) -> tuple[
     check_same_dtype(("result.posterior.mean", "F", "Q"), (post.mean, F, Q))
     check_finite("F", F.detach())
     check_spd("Q", Q.detach(), semidefinite=True)
-    if not bool(torch.isfinite(post.cov.detach()).all()):
+    cov = compact(post.cov.detach(), 3)          # covariances shared by the batch: checked once
+    if not bool(torch.isfinite(cov).all()):
         raise ValueError("result: the filtered covariances contain NaN or inf")
-    if bool((post.var.detach() < 0).any()):
+    if bool((torch.diagonal(cov, dim1=-2, dim2=-1) < 0).any()):
         raise ValueError("result: a filtered variance is negative; refilter with the Joseph-form update")
     return post, nxt
 
@@ -383,7 +384,7 @@ def rts_smoother_reference(result: FilterResult, F: Tensor, Q: Tensor) -> Gaussi
     return Gaussian.stack(smoothed[::-1])
 
 
-def rts_smoother(result: FilterResult, F: Tensor, Q: Tensor) -> Gaussian:
+def rts_smoother(result: FilterResult, F: Tensor, Q: Tensor, *, backend: Backend = "auto") -> Gaussian:
     r"""Rauch–Tung–Striebel smoother, Eq. (rts): :math:`p(z_t \mid y_{1:T})` for all ``t``.
 
     It is Gaussian conditioning (Eq. gauss-condition) of the joint of :math:`(z_t, z_{t+1})`
@@ -393,18 +394,36 @@ def rts_smoother(result: FilterResult, F: Tensor, Q: Tensor) -> Gaussian:
     covariances of :func:`_smoother_gains` computed for all steps at once (the backward loop
     is two small products per step). ``F, Q`` must be the transition and its noise used by
     the filter; ``result`` comes from :func:`kalman_filter`. Returns a Gaussian with mean
-    ``(..., T, n)`` and cov ``(..., T, n, n)``.
+    ``(..., T, n)`` and cov ``(..., T, n, n)``. Covariances shared by the batch (broadcast
+    views, as :func:`kalman_filter` returns them when no sequence has its own mask) are
+    smoothed once.
+
+    float32 beliefs are smoothed in float64 and the result rounded to float32 once: the
+    backward recursion amplifies rounding errors, and with a process noise far below the
+    filtered variances float32 gave negative variances (tested against float64).
+
+    ``backend``: as in :func:`kalman_filter`: ``"reference"`` (:func:`rts_smoother_reference`),
+    ``"tensor"`` (above), ``"compiled"`` (numba loop, CPU, unbatched ``F, Q``, no gradient),
+    ``"parallel"`` (:func:`pgm_wm.kalman_parallel.parallel_rts_smoother`), ``"auto"``/``"fast"``
+    (compiled where it can serve the call, else tensor); tested equal in float32 and float64.
     """
+    if backend == "reference":
+        return rts_smoother_reference(result, F, Q)
+    if backend == "parallel":
+        return implementation("rts_smoother", "parallel")(result, F, Q)
     post, nxt = _check_smoother_inputs(result, F, Q)
+    which = select("rts_smoother", post.mean, post.cov, nxt.mean, nxt.cov, F, Q, backend=backend,
+                   shared_params=F.ndim == 2 and Q.ndim == 2)
+    dtype = F.dtype
+    m_f, P_f, m_n, P_n, F, Q = smoothing_precision(post, nxt, F, Q)     # float32: run in float64
+    post, nxt = Gaussian(m_f, P_f), Gaussian(m_n, P_n)
+    if which == "compiled":
+        sm = rts_compiled(post, nxt, F, Q)
+        return sm if sm.mean.dtype == dtype else Gaussian(sm.mean.to(dtype), _cast_cov(sm.cov, dtype))
     T, n = post.mean.shape[-2], post.dim
     batch = post.batch_shape[:-1]
     # Covariances shared by the batch (broadcast views from kalman_filter) are processed once.
-    shared = Gaussian(post.mean, _compact(post.cov, 3)), Gaussian(nxt.mean, _compact(nxt.cov, 3))
-    needs_grad = torch.is_grad_enabled() and any(
-        x.requires_grad for x in (post.mean, post.cov, nxt.mean, nxt.cov, F, Q))
-    if shared[0].cov.shape[:-3] == batch and len(batch) > 0 and F.ndim == 2 and Q.ndim == 2 \
-            and not needs_grad and T > 1 and _jit.enabled(post.mean, F):
-        return _rts_jit(post, nxt, F, Q)
+    shared = Gaussian(post.mean, compact(post.cov, 3)), Gaussian(nxt.mean, compact(nxt.cov, 3))
     G, L = _smoother_gains(shared[0], shared[1], F, Q)
     m_f, m_p = post.mean.expand(*batch, T, n), nxt.mean.expand(*batch, T, n)
     Gt = G.transpose(-1, -2)
@@ -419,4 +438,9 @@ def rts_smoother(result: FilterResult, F: Tensor, Q: Tensor) -> Gaussian:
     mean = torch.stack(means[::-1], -2)
     cov_shape = torch.broadcast_shapes(*(c.shape for c in covs))
     cov = torch.stack([c.expand(cov_shape) for c in covs[::-1]], -3)
-    return Gaussian(mean, cov.expand(*batch, T, n, n))
+    return Gaussian(mean.to(dtype), _cast_cov(cov, dtype).expand(*batch, T, n, n))
+
+
+def _cast_cov(cov: Tensor, dtype: torch.dtype) -> Tensor:
+    """``cov`` in ``dtype``, broadcast views kept broadcast."""
+    return cov if cov.dtype == dtype else compact(cov, 3).to(dtype).expand(cov.shape)

@@ -51,6 +51,7 @@ from torch import Tensor
 
 from .filtering import FilterResult
 from .gaussian import _LOG_2PI, Gaussian, _sym
+from ._backends.kalman_fast import smoothing_precision
 from .kalman import _check_filter_inputs, _check_smoother_inputs, _smoother_gains
 
 __all__ = ["associative_scan", "parallel_kalman_filter", "parallel_rts_smoother", "scan_filter"]
@@ -232,11 +233,14 @@ def parallel_rts_smoother(result: FilterResult, F: Tensor, Q: Tensor) -> Gaussia
     same arguments and result as :func:`pgm_wm.kalman.rts_smoother` (elements in the module
     docstring; the conditional covariances in the Joseph form)."""
     post, nxt = _check_smoother_inputs(result, F, Q)
+    dtype = F.dtype
+    m_f, P_f, m_n, P_n, F, Q = smoothing_precision(post, nxt, F, Q)     # float32: run in float64
+    post, nxt = Gaussian(m_f, P_f), Gaussian(m_n, P_n)
     T, n = post.mean.shape[-2], post.dim
     batch = post.batch_shape[:-1]
     mean = post.mean.expand(*batch, T, n)
     if T == 1:
-        return Gaussian(mean, post.cov.expand(*batch, T, n, n))
+        return Gaussian(mean, post.cov.expand(*batch, T, n, n)).to(dtype)
     G, L = _smoother_gains(post, nxt, F, Q)                                  # (..., T-1, n, n)
     G = G.expand(*batch, T - 1, n, n)
     L = L.expand(*batch, T - 1, n, n)
@@ -248,4 +252,4 @@ def parallel_rts_smoother(result: FilterResult, F: Tensor, Q: Tensor) -> Gaussia
     k = len(batch)
     _, m_s, P_s = associative_scan(
         _smoother_op, (E.movedim(k, 0), g.movedim(k, 0), Lall.movedim(k, 0)), reverse=True)
-    return Gaussian(m_s.movedim(0, k), P_s.movedim(0, k))
+    return Gaussian(m_s.movedim(0, k), P_s.movedim(0, k)).to(dtype)

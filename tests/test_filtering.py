@@ -202,24 +202,26 @@ def test_untrained_models_stay_finite_over_10000_missing_steps(name):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("masked", [True, False])
-@pytest.mark.parametrize("jit", ["compiled", "tensor ops"])
-def test_fast_path_gradients_equal_the_reference_loop(dtype, masked, jit, monkeypatch):
+@pytest.mark.parametrize("backend", ["compiled", "tensor"])
+def test_fast_path_gradients_equal_the_reference_loop(dtype, masked, backend):
     """Training differentiates the fast path (MTS3's fast level): its gradients with respect to
     the prior, the observations, the transition, its noise and the inputs equal those of the
     reference loop, with and without a mask, both for the compiled loop with its hand-written
-    backward pass (numba) and for the tensor operations (``PGM_WM_JIT=0``), and so do the
-    values without a gradient."""
-    from pgm_wm import _jit
+    backward pass (numba) and for the tensor operations (the path with ``PGM_WM_JIT=0``), and
+    so do the values without a gradient."""
+    from functools import partial
 
-    if jit == "compiled" and _jit.numba is None:
-        pytest.skip("numba is not installed")
-    monkeypatch.setenv("PGM_WM_JIT", "1" if jit == "compiled" else "0")
+    from pgm_wm import _backends
+
+    if backend == "compiled" and not _backends.compiled_available():
+        pytest.skip("numba is not installed or PGM_WM_JIT=0")
+    fast_filter = partial(diagonal_factorized_filter, backend=backend)
     prior, A, q, obs, mask, inputs = random_problem(3, dtype)
     mask = mask if masked else None
     leaves = [prior.mean, prior.var_upper, prior.var_lower, prior.cov_side, A, q, obs.mean, obs.var,
               inputs.mean, inputs.var_upper, inputs.var_lower, inputs.cov_side]
     grads = []
-    for fn in (factorized_filter, diagonal_factorized_filter):
+    for fn in (factorized_filter, fast_filter):
         xs = [x.detach().clone().requires_grad_(True) for x in leaves]
         p, o = FactorizedBelief(*xs[:4]), DiagGaussian(xs[6], xs[7])
         res = fn(p, xs[4], xs[5], o, mask, FactorizedBelief(*xs[8:]))
@@ -232,7 +234,7 @@ def test_fast_path_gradients_equal_the_reference_loop(dtype, masked, jit, monkey
         if a is not None:
             torch.testing.assert_close(b, a, **tol)
     with torch.no_grad():
-        fast = diagonal_factorized_filter(prior, A, q, obs, mask, inputs)
+        fast = fast_filter(prior, A, q, obs, mask, inputs)
         ref = factorized_filter(prior, A, q, obs, mask, inputs)
     # float32: the compiled loop rounds its float64 intermediates once per step, the tensor
     # operations after every operation (a few ulp apart, more where sigma^l - (sigma^s)^2 g cancels)

@@ -1,19 +1,22 @@
-r"""The fast backend of :func:`pgm_wm.kalman.kalman_filter` and of :func:`pgm_wm.kalman.rts_smoother`
-(Chapter 1): the same numbers as the book's reference loops (tested in float32 and float64),
-with fewer tensor operations per step.
+r"""The ``"tensor"`` and ``"compiled"`` backends of :func:`pgm_wm.kalman.kalman_filter` and of
+:func:`pgm_wm.kalman.rts_smoother` (Chapter 1): the same numbers as the book's reference loops
+(tested in float32 and float64), with fewer operations per step. Which one serves a call is
+decided by the backend table (:mod:`pgm_wm._backends`).
 
 * Shared covariances: with unbatched parameters and the same mask (or none) for every sequence,
-  one covariance sequence (Eqs. kf-update, kf-joseph, kf-predict) serves the whole batch; without
-  a mask and a gradient it stops at its bitwise steady state. The means are then the linear
-  recursion :math:`\mu^-_{t+1} = F(I - K_tH)\mu^-_t + FK_ty_t + Bu_t`, one small GEMM per step,
-  and posteriors and log-likelihoods (Eq. kf-loglik) follow for all steps at once.
-* A mask (per sequence or shared) or a batched initial belief, unbatched ``F, H, Q, R``, no
-  gradient, CPU: the compiled loops of :mod:`pgm_wm.kalman_jit` (numba; all sequences advance
-  together, batch-last), for the filter and for the RTS smoother.
-* Otherwise a covariance per sequence as tensor operations: batch-last storage ("structure of
-  arrays"), every map linear in the covariance one GEMM with a constant matrix, closed-form 2×2
-  inverses, preallocated outputs (the path with a gradient, on other devices, or with
-  ``PGM_WM_JIT=0``).
+  one covariance sequence (Eqs. kf-update, kf-joseph, kf-predict) serves the whole batch: the
+  covariances, gains and smoother gains do not depend on the observed values.
+* ``"compiled"`` (unbatched ``F, H, Q, R``, no gradient, CPU): the loops of
+  :mod:`pgm_wm._backends.kalman_jit` (numba; all sequences advance together, batch-last), for
+  the filter and the RTS smoother, with one covariance sequence for the batch where it is shared
+  and one per sequence otherwise.
+* ``"tensor"``, shared covariances: the Riccati recursion once (without a mask and a gradient it
+  stops at its bitwise steady state); the means are then the linear recursion
+  :math:`\mu^-_{t+1} = F(I - K_tH)\mu^-_t + FK_ty_t + Bu_t`, one small GEMM per step, and
+  posteriors and log-likelihoods (Eq. kf-loglik) follow for all steps at once.
+* ``"tensor"``, a covariance per sequence: batch-last storage ("structure of arrays"), every map
+  linear in the covariance one GEMM with a constant matrix, closed-form 2×2 inverses,
+  preallocated outputs (the path with a gradient, on other devices, or with ``PGM_WM_JIT=0``).
 """
 
 from __future__ import annotations
@@ -24,9 +27,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from . import _jit
-from .filtering import FilterResult
-from .gaussian import _LOG_2PI, Gaussian, _predict_cov, _sandwich_operator, _sym
+from ..filtering import FilterResult
+from ..gaussian import _LOG_2PI, Gaussian, _predict_cov, _sandwich_operator, _sym
+from .compiler import as_array, contiguous_array, empty
+from .kalman_jit import filter_loop, smoother_loop
 
 def _spd_inverse(S: Tensor) -> tuple[Tensor, Tensor]:
     """``(S⁻¹, log det S)`` of small SPD matrices ``(..., m, m)``: closed formulas on the whole
@@ -59,11 +63,12 @@ def _joseph_step(P: Tensor, H: Tensor, R: Tensor, w: Tensor | None, eye: Tensor)
     return _sym(A @ P @ A.transpose(-1, -2) + K @ R @ K.transpose(-1, -2)), K, S_inv, logdet
 
 
-def _filter_fast(
+def filter_fast(
     y: Tensor, init: Gaussian, F: Tensor, H: Tensor, Q: Tensor, R: Tensor,
-    mask: Tensor | None, offsets: Tensor | None, batch: torch.Size,
+    mask: Tensor | None, offsets: Tensor | None, batch: torch.Size, compiled: bool,
 ) -> FilterResult[Gaussian]:
-    """The fast backend (module docstring) on validated inputs; see :func:`kalman_filter`."""
+    """The ``"compiled"`` (``compiled=True``: unbatched ``F, H, Q, R``, no gradient, CPU) or
+    ``"tensor"`` backend (module docstring) on validated inputs; see :func:`kalman_filter`."""
     T, m, n = y.shape[-2], y.shape[-1], init.dim
     N = math.prod(batch)
     dt, dev = y.dtype, y.device
@@ -83,12 +88,9 @@ def _filter_fast(
     shared = params_2d and (flat_mask is None or bool((flat_mask == flat_mask[:1]).all()))
     w_all = None if flat_mask is None else flat_mask.to(dt)
 
-    if all(x.ndim == 2 for x in (F, H, Q, R)) and not needs_grad and _jit.enabled(y, F) \
-            and (flat_mask is not None or not shared):
-        # a mask (per sequence, or shared: the Python loop over steps would cost more than the
-        # compiled loop's per-sequence arithmetic) or a batched initial belief: compiled loop
-        return _filter_jit(flat(y, 2), w_all, None if offsets is None else flat(offsets, 2),
-                           F, H, Q, R, flat(init.mean, 1), flat(init.cov, 2), batch)
+    if compiled:
+        return filter_compiled(flat(y, 2), w_all, None if offsets is None else flat(offsets, 2), F, H, Q, R,
+                               flat(init.mean, 1), init.cov if shared else flat(init.cov, 2), batch)
     if shared:
         # One covariance sequence for the whole batch (Riccati recursion, Eqs. kf-update/kf-predict).
         w = None if w_all is None else w_all[0]
@@ -225,31 +227,39 @@ def _filter_fast(
     return FilterResult(belief(M[:T], cov_prior), belief(M_post, cov_post), belief(M[1:], cov_next), ll)
 
 
-def _filter_jit(y: Tensor, w: Tensor | None, offsets: Tensor | None, F: Tensor, H: Tensor, Q: Tensor,
-                R: Tensor, mean0: Tensor, cov0: Tensor, batch: torch.Size) -> FilterResult[Gaussian]:
-    """The per-sequence path for unbatched ``F, H, Q, R`` without a gradient, compiled
-    (:func:`pgm_wm.kalman_jit.filter_loop`, batch-last): ``y: (N, T, m)``, ``w: (N, T)`` 1/0 or
-    ``None``, ``offsets: (N, T, n)`` or ``None``, ``mean0: (N, n)``, ``cov0: (N, n, n)``.
-    The results are batch-first views of the batch-last buffers."""
-    from .kalman_jit import filter_loop
-
+def filter_compiled(y: Tensor, w: Tensor | None, offsets: Tensor | None, F: Tensor, H: Tensor, Q: Tensor,
+                    R: Tensor, mean0: Tensor, cov0: Tensor, batch: torch.Size) -> FilterResult[Gaussian]:
+    """The ``"compiled"`` filter (:func:`pgm_wm._backends.kalman_jit.filter_loop`, batch-last):
+    ``y: (N, T, m)``, ``w: (N, T)`` 1/0 or ``None``, ``offsets: (N, T, n)`` or ``None``,
+    ``mean0: (N, n)``, ``cov0: (n, n)`` (one covariance sequence for the batch; the mask, if
+    any, must be the same for every sequence) or ``(N, n, n)`` (one per sequence). The results
+    are batch-first views of the batch-last buffers (shared covariances: broadcast views)."""
     N, T, m = y.shape
     n = F.shape[-1]
+    C = 1 if cov0.ndim == 2 else N
     dt = y.dtype
-    arr = lambda x: np.ascontiguousarray(_jit.as_array(x))  # noqa: E731
-    w = torch.ones(T, N, dtype=dt) if w is None else w.T
-    off = torch.zeros(T, n, N, dtype=dt) if offsets is None else offsets.permute(1, 2, 0)
-    M, P = torch.empty(T + 1, n, N, dtype=dt), torch.empty(T + 1, n, n, N, dtype=dt)
-    Mp, Pp, ll = torch.empty(T, n, N, dtype=dt), torch.empty(T, n, n, N, dtype=dt), torch.empty(T, N, dtype=dt)
-    M[0], P[0] = mean0.T, cov0.permute(1, 2, 0)
-    filter_loop(arr(y.permute(1, 2, 0)), arr(w), arr(off), arr(F), arr(H), arr(Q), arr(R),
+    w = torch.ones(1, N, dtype=dt) if w is None else w.T            # (T or 1, N)
+    off = torch.zeros(1, n, N, dtype=dt) if offsets is None else offsets.permute(1, 2, 0)
+    M, P = empty(T + 1, n, N, dtype=dt), empty(T + 1, n, n, C, dtype=dt)
+    Mp, Pp, ll = empty(T, n, N, dtype=dt), empty(T, n, n, C, dtype=dt), empty(T, N, dtype=dt)
+    M[0], P[0] = mean0.T, cov0.unsqueeze(-1) if C == 1 else cov0.permute(1, 2, 0)
+    arr = contiguous_array
+    filter_loop(as_array(y.permute(1, 2, 0)), arr(w), arr(off), arr(F), arr(H), arr(Q), arr(R),
                 M.numpy(), P.numpy(), Mp.numpy(), Pp.numpy(), ll.numpy())
+    return FilterResult(_batch_first(M[:T], P[:T], batch), _batch_first(Mp, Pp, batch),
+                        _batch_first(M[1:], P[1:], batch), ll.T.reshape(*batch, T))
 
-    def belief(mean: Tensor, cov: Tensor) -> Gaussian:       # (T, n, N), (T, n, n, N) -> batch first
-        return Gaussian(mean.permute(2, 0, 1).reshape(*batch, T, n),
-                        cov.permute(3, 0, 1, 2).reshape(*batch, T, n, n))
 
-    return FilterResult(belief(M[:T], P[:T]), belief(Mp, Pp), belief(M[1:], P[1:]), ll.T.reshape(*batch, T))
+def _batch_first(mean: Tensor, cov: Tensor, batch: torch.Size) -> Gaussian:
+    """A belief from batch-last buffers ``mean: (T, n, N)``, ``cov: (T, n, n, C)`` (``C = 1``:
+    shared by the batch, returned as a broadcast view)."""
+    T, n = mean.shape[:2]
+    m = mean.permute(2, 0, 1).reshape(*batch, T, n)
+    if cov.shape[-1] == 1 and mean.shape[-1] != 1:
+        c = cov[..., 0].reshape(*([1] * len(batch)), T, n, n).expand(*batch, T, n, n)
+    else:
+        c = cov.permute(3, 0, 1, 2).reshape(*batch, T, n, n)
+    return Gaussian(m, c)
 
 
 class _SequenceStep:
@@ -298,19 +308,6 @@ class _SequenceStep:
         return P_next, mean_next
 
 
-_SCRIPTED: dict = {}
-
-
-def _scripted(fn):
-    """``fn`` compiled by TorchScript once per process (``fn`` itself if compiling fails)."""
-    if fn.__name__ not in _SCRIPTED:
-        try:
-            _SCRIPTED[fn.__name__] = torch.jit.script(fn)
-        except Exception:                                   # noqa: BLE001 - any failure: run uncompiled
-            _SCRIPTED[fn.__name__] = fn
-    return _SCRIPTED[fn.__name__]
-
-
 def _mm(A: Tensor, B: Tensor) -> Tensor:
     """``A @ B`` for batch-last matrices ``A: (i, k, N)``, ``B: (k, j, N)`` -> ``(i, j, N)``."""
     return (A.unsqueeze(2) * B.unsqueeze(0)).sum(1)
@@ -337,30 +334,47 @@ def _spd_inverse_soa(S: Tensor, w: Tensor | None) -> tuple[Tensor, Tensor]:
     return (inv if w is None else inv * w), logdet
 
 
-def _rts_jit(post: Gaussian, nxt: Gaussian, F: Tensor, Q: Tensor) -> Gaussian:
-    """:func:`rts_smoother` for a covariance per sequence and unbatched ``F, Q`` without a
-    gradient, compiled (:func:`pgm_wm.kalman_jit.smoother_loop`, batch-last: the views that
-    :func:`_filter_jit` returns are read without a copy)."""
-    from .kalman_jit import smoother_loop
-
+def rts_compiled(post: Gaussian, nxt: Gaussian, F: Tensor, Q: Tensor) -> Gaussian:
+    """The ``"compiled"`` RTS smoother (:func:`pgm_wm._backends.kalman_jit.smoother_loop`,
+    batch-last) for unbatched ``F, Q`` without a gradient: one covariance sequence where the
+    filter's covariances are shared by the batch (broadcast views), one per sequence otherwise.
+    The views that :func:`filter_compiled` returns are read without a copy."""
     T, n = post.mean.shape[-2], post.dim
     batch = post.batch_shape[:-1]
     N = math.prod(batch)
     dt = F.dtype
+    Pf, Pn = compact(post.cov, 3), compact(nxt.cov, 3)
+    C = 1 if Pf.shape[:-3].numel() == 1 and Pn.shape[:-3].numel() == 1 else N
 
-    def soa(x: Tensor, k: int) -> np.ndarray:       # (*batch, T, *event) -> (T, *event, N)
-        x = x.expand(*batch, T, *x.shape[x.ndim - k:]).reshape(N, T, *x.shape[x.ndim - k:])
-        return np.ascontiguousarray(_jit.as_array(x.movedim(0, -1)))
+    def soa(x: Tensor, k: int, cols: int) -> np.ndarray:       # (*batch, T, *event) -> (T, *event, cols)
+        event = x.shape[x.ndim - k:]
+        x = x.reshape(T, *event, 1) if cols == 1 else \
+            x.expand(*batch, T, *event).reshape(N, T, *event).movedim(0, -1)
+        return contiguous_array(x)
 
-    M, C = torch.empty(T, n, N, dtype=dt), torch.empty(T, n, n, N, dtype=dt)
-    arr = lambda x: np.ascontiguousarray(_jit.as_array(x))  # noqa: E731
-    if not smoother_loop(soa(post.mean, 1), soa(post.cov, 2), soa(nxt.mean, 1), soa(nxt.cov, 2),
-                         arr(F), arr(Q), M.numpy(), C.numpy()):
+    M, Cs = empty(T, n, N, dtype=dt), empty(T, n, n, C, dtype=dt)
+    if not smoother_loop(soa(post.mean, 1, N), soa(Pf, 2, C), soa(nxt.mean, 1, N), soa(Pn, 2, C),
+                         contiguous_array(F), contiguous_array(Q), M.numpy(), Cs.numpy()):
         raise ValueError("result: a predicted covariance is not positive definite (Q too small?)")
-    return Gaussian(M.permute(2, 0, 1).reshape(*batch, T, n), C.permute(3, 0, 1, 2).reshape(*batch, T, n, n))
+    return _batch_first(M, Cs, batch)
 
 
-def _compact(x: Tensor, k: int) -> Tensor:
+def smoothing_precision(post: Gaussian, nxt: Gaussian, F: Tensor, Q: Tensor) -> tuple[Tensor, ...]:
+    r"""The filter's beliefs and ``F, Q`` in the dtype the RTS recursion runs in: float64 for
+    float32 inputs (broadcast covariances stay broadcast views). Why: the backward recursion
+    :math:`\Sigma^s_t = L_t + G_t\Sigma^s_{t+1}G_t^\top` multiplies the rounding errors of
+    :math:`\Sigma^s_{t+1}` by :math:`G_t` twice per step, and with a process noise far below
+    the filtered variance (``Q`` ~ 1e-12, ``R`` ~ 1e12) :math:`G_t \approx F^{-1}` is expanding:
+    in float32 the smoothed variances came out negative (issue 24); in float64 they do not,
+    and the result is rounded to float32 once. Returns ``(post.mean, post.cov, nxt.mean,
+    nxt.cov, F, Q)``."""
+    if F.dtype != torch.float32:
+        return post.mean, post.cov, nxt.mean, nxt.cov, F, Q
+    up = lambda x, k: compact(x, k).double().expand(x.shape)  # noqa: E731
+    return up(post.mean, 2), up(post.cov, 3), up(nxt.mean, 2), up(nxt.cov, 3), F.double(), Q.double()
+
+
+def compact(x: Tensor, k: int) -> Tensor:
     """Collapse leading dimensions of ``x`` that are broadcast views (stride 0) to size 1,
     keeping the last ``k`` dimensions; the result broadcasts back to ``x``'s shape."""
     for d in range(x.ndim - k):

@@ -2,7 +2,7 @@ r"""Compiled loop of :func:`pgm_wm.factorized.diagonal_factorized_filter` with i
 backward pass (Chapter 6: the MTS3 fast level, trained through this loop).
 
 With diagonal blocks every latent dimension ("lane") :math:`i` of every sequence is its own
-two-state filter, so the compiled loop (:mod:`pgm_wm._jit`) runs the update (Eq. rkn-update,
+two-state filter, so the compiled loop (:mod:`pgm_wm._backends.compiler`) runs the update (Eq. rkn-update,
 product form) and the predict (Eq. rkn-predict) lane by lane; per lane and step, with the prior
 :math:`(z^u, z^l, \sigma^u, \sigma^s, \sigma^l)`, the observation :math:`(w, r)` and the mask
 :math:`\mu\in\{0, 1\}`:
@@ -43,10 +43,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._jit import as_array, jit
+from .compiler import as_array, kernel
+from .factorized_fast import diagonal_steps
 
 
-@jit
+@kernel
 def _forward(z0, s0, w, r, mu, has_mask, in_z, a, c, in_s, Z, S, Zp, Sp, z_last, s_last):
     """Forward loop, batch first: ``w, r, mu: (N, T, m)``, ``in_z: (N, T, 2m)``,
     ``in_s: (N, T, 3m)``, ``a: (4, m)`` = lane diagonals of :math:`A_{11}, A_{12}, A_{21}, A_{22}`,
@@ -83,7 +84,7 @@ def _forward(z0, s0, w, r, mu, has_mask, in_z, a, c, in_s, Z, S, Zp, Sp, z_last,
             s_last[b, i], s_last[b, m + i], s_last[b, 2 * m + i] = su[i], ss[i], sl[i]
 
 
-@jit
+@kernel
 def _backward(Z, S, w, r, mu, has_mask, a, c, dZ, dS, dZp, dSp, dz_last, ds_last,
               g_w, g_r, g_in_z, g_in_s, g_z0, g_s0):
     """Backward loop (module docstring): from the saved priors ``Z, S`` and the gradients of the
@@ -133,12 +134,17 @@ def _backward(Z, S, w, r, mu, has_mask, a, c, dZ, dS, dZp, dSp, dz_last, ds_last
 
 class _DiagonalFilter(torch.autograd.Function):
     """Autograd wrapper: forward by :func:`_forward`, backward by :func:`_backward` plus one
-    matrix product for the gradient of ``A`` and one sum for that of ``coef``."""
+    matrix product for the gradient of ``A`` and one sum for that of ``coef``.
+
+    A backward pass that must itself be differentiable (``create_graph=True``, e.g. a gradient
+    penalty: autograd then runs the backward with gradient mode on) is not what the compiled
+    loop computes: it is then recomputed from the saved inputs by the tensor path
+    (:func:`pgm_wm._backends.factorized_fast.diagonal_steps`) and differentiated by autograd,
+    so second derivatives are those of the tensor path (tested)."""
 
     @staticmethod
     def forward(ctx, z0, s0, w, r, mu, in_z, in_s, A, coef):  # noqa: D102
         N, T, m = w.shape
-        arr = lambda x: np.ascontiguousarray(as_array(x))  # noqa: E731
         a = torch.stack([torch.diagonal(A[:m, :m]), torch.diagonal(A[:m, m:]),
                          torch.diagonal(A[m:, :m]), torch.diagonal(A[m:, m:])])
         opts = dict(dtype=w.dtype, device=w.device)
@@ -149,14 +155,16 @@ class _DiagonalFilter(torch.autograd.Function):
         mu_arr = arr(mu) if has_mask else arr(w[:1, :1])
         _forward(arr(z0), arr(s0), arr(w), arr(r), mu_arr, has_mask, arr(in_z), arr(a), arr(coef), arr(in_s),
                  Z.numpy(), S.numpy(), Zp.numpy(), Sp.numpy(), z_last.numpy(), s_last.numpy())
-        ctx.save_for_backward(Z, S, Zp, Sp, w, r, mu, a, coef)
+        ctx.save_for_backward(Z, S, Zp, Sp, a, z0, s0, w, r, mu, in_z, in_s, A, coef)
         return Z, S, Zp, Sp, z_last, s_last
 
     @staticmethod
     def backward(ctx, dZ, dS, dZp, dSp, dz_last, ds_last):  # noqa: D102
-        Z, S, Zp, Sp, w, r, mu, a, coef = ctx.saved_tensors
+        Z, S, Zp, Sp, a, *inputs = ctx.saved_tensors
+        if torch.is_grad_enabled():          # create_graph=True: differentiate the tensor path instead
+            return _differentiable_backward(ctx, inputs, (dZ, dS, dZp, dSp, dz_last, ds_last))
+        z0, s0, w, r, mu, in_z, in_s, A, coef = inputs
         N, T, m = w.shape
-        arr = lambda x: np.ascontiguousarray(as_array(x))  # noqa: E731
         grad = lambda x, like: arr(torch.zeros_like(like) if x is None else x)  # noqa: E731
         g_w, g_r = torch.empty_like(w), torch.empty_like(r)
         g_in_z, g_in_s = torch.empty_like(Z), torch.empty_like(S)
@@ -174,6 +182,28 @@ class _DiagonalFilter(torch.autograd.Function):
         return g_z0, g_s0, g_w, g_r, None, g_in_z, g_in_s, g_A, g_coef
 
 
+def _differentiable_backward(ctx, inputs: list, grad_outputs: tuple) -> tuple:
+    """The gradients of the inputs as a differentiable function of the inputs and of
+    ``grad_outputs``: autograd through the tensor path (the class docstring)."""
+    wanted = [i for i, x in enumerate(inputs) if x is not None and ctx.needs_input_grad[i]]
+    # a node of its own per input: the partial derivatives, not total ones (coef is computed
+    # from A before the call, and the gradient of A must not pass through coef twice)
+    xs = [x.view_as(x) if i in wanted else x for i, x in enumerate(inputs)]
+    outs = diagonal_steps(*xs)
+    pairs = [(o, g) for o, g in zip(outs, grad_outputs) if g is not None and o.requires_grad]
+    grads = torch.autograd.grad([o for o, _ in pairs], [xs[i] for i in wanted], [g for _, g in pairs],
+                                create_graph=True, allow_unused=True) if pairs and wanted else ()
+    out: list = [None] * len(inputs)
+    for i, g in zip(wanted, grads):
+        out[i] = torch.zeros_like(inputs[i]) if g is None else g
+    return tuple(out)
+
+
+def arr(x: Tensor) -> np.ndarray:
+    """A C-contiguous NumPy array of a CPU tensor (no copy where it is contiguous)."""
+    return np.ascontiguousarray(as_array(x))
+
+
 def diagonal_filter_jit(z0: Tensor, s0: Tensor, w: Tensor, r: Tensor, mu: Tensor | None, in_z: Tensor,
                         in_s: Tensor, A: Tensor, coef: Tensor) -> tuple[Tensor, ...]:
     """The diagonal factorized filter on packed, batch-flattened states (see
@@ -183,5 +213,11 @@ def diagonal_filter_jit(z0: Tensor, s0: Tensor, w: Tensor, r: Tensor, mu: Tensor
     diagonal blocks, ``coef: (3, 3, m)`` the predict map of the variances per lane
     (``coef[k, l]``: coefficient of :math:`s^+_k` in :math:`s'_l`). Returns
     ``(Z, S, Zp, Sp, z_last, s_last)``: priors, posteriors and the last prediction,
-    differentiable in every input but ``mu``."""
+    differentiable in every input but ``mu`` (to any order: see :class:`_DiagonalFilter`).
+    Not under ``torch.func`` transforms (the backend table sends those calls to the tensor
+    path; called directly, it raises ``ValueError``)."""
+    active = getattr(torch._C, "_are_functorch_transforms_active", None)
+    if active is not None and active():
+        raise ValueError("backend: the compiled diagonal factorized filter cannot run under torch.func "
+                         "transforms (vmap, grad, jacrev, ...); use backend='tensor'")
     return _DiagonalFilter.apply(z0, s0, w, r, mu, in_z, in_s, A, coef)
