@@ -46,8 +46,7 @@ import torch
 from torch import Tensor, nn
 
 from ._checks import as_tensor, check_finite, check_last_dims, check_mask, check_positive, check_same_dtype, check_tensor, mask_observations
-from .beliefs import DiagGaussian, FactorizedBelief
-from .factorized import block_inverse
+from .beliefs import DiagGaussian, FactorizedBelief, block_inverse
 from .layers import mlp, positive_variance
 
 __all__ = [

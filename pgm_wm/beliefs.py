@@ -32,9 +32,11 @@ from typing import Any, Callable, ClassVar, Iterator, Sequence, TypeVar
 import torch
 from torch import Tensor
 
-from ._checks import check_last_dims, check_positive, check_same_batch, check_spd, check_tensor
+from ._checks import check_finite, check_last_dims, check_positive, check_same_batch, check_spd, check_tensor
+from ._linalg import chol_logpdf, symmetrize
 
-__all__ = ["Gaussian", "DiagGaussian", "FactorizedBelief"]
+__all__ = [
+    "block_inverse", "Gaussian", "DiagGaussian", "FactorizedBelief"]
 
 B = TypeVar("B", bound="_Belief")
 
@@ -186,9 +188,13 @@ class Gaussian(_Belief):
 
     def log_prob(self, x: Tensor) -> Tensor:
         """Log-density :math:`\\log\\mathcal N(x\\mid\\mu,\\Sigma)`, Eq. (gauss-logpdf). Returns ``(...)``."""
-        from .gaussian import log_density  # gaussian.py imports this module
-
-        return log_density(x, self.mean, self.cov)
+        check_tensor("x", x, min_ndim=1)
+        check_last_dims("x", x, (self.dim,))
+        check_finite("x", x.detach())
+        chol, info = torch.linalg.cholesky_ex(symmetrize(self.cov))
+        if bool((info != 0).any()):
+            raise ValueError("cov: matrix is not positive definite")
+        return chol_logpdf(x - self.mean, chol)
 
     def sample(self, n: int, generator: torch.Generator | None = None) -> Tensor:
         """Draw ``n`` samples :math:`\\mu + L\\epsilon` with :math:`LL^\\top = \\Sigma`: returns ``(n, ..., dim)``."""
@@ -360,3 +366,22 @@ class FactorizedBelief(_Belief):
         """
         return FactorizedBelief(self.mean, self.var_upper, self.var_lower, torch.zeros_like(self.cov_side))
 
+
+def block_inverse(upper: Tensor, lower: Tensor, side: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    r"""Invert :math:`M = [[\mathrm{diag}(a^u), \mathrm{diag}(a^s)], [\mathrm{diag}(a^s),
+    \mathrm{diag}(a^l)]]` by scalar operations, Eq. (rkn-block-inverse):
+
+    .. math:: d = a^u\odot a^l - a^s\odot a^s,\qquad
+              M^{-1} = \begin{bmatrix}\mathrm{diag}(a^l\oslash d) & \mathrm{diag}(-a^s\oslash d)\\
+                       \mathrm{diag}(-a^s\oslash d) & \mathrm{diag}(a^u\oslash d)\end{bmatrix}.
+
+    Works in both directions (covariance → precision and back). Exact. Shapes ``(..., m)``.
+    Raises ``ValueError`` if a 2×2 block is singular or not positive definite.
+    """
+    check_tensor("upper", upper, 1)
+    check_last_dims("lower", lower, (upper.shape[-1],))
+    check_last_dims("side", side, (upper.shape[-1],))
+    d = upper * lower - side * side
+    if not bool((d > 0).all()) or not bool((upper > 0).all()):
+        raise ValueError("side: the 2x2 blocks must be positive definite (upper > 0, upper*lower > side^2)")
+    return lower / d, upper / d, -side / d

@@ -44,7 +44,7 @@ from torch import Tensor
 
 from ._checks import (check_finite, check_last_dims, check_mask, check_nonnegative, check_positive, check_same_dtype,
                       check_tensor)
-from .beliefs import DiagGaussian, FactorizedBelief
+from .beliefs import DiagGaussian, FactorizedBelief, block_inverse
 from .filtering import FilterResult, filter_loop
 from ._backends import Backend, select
 from ._backends.factorized_fast import diagonal_steps
@@ -64,26 +64,6 @@ __all__ = [
     "factorized_filter",
     "diagonal_factorized_filter",
 ]
-
-
-def block_inverse(upper: Tensor, lower: Tensor, side: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    r"""Invert :math:`M = [[\mathrm{diag}(a^u), \mathrm{diag}(a^s)], [\mathrm{diag}(a^s),
-    \mathrm{diag}(a^l)]]` by scalar operations, Eq. (rkn-block-inverse):
-
-    .. math:: d = a^u\odot a^l - a^s\odot a^s,\qquad
-              M^{-1} = \begin{bmatrix}\mathrm{diag}(a^l\oslash d) & \mathrm{diag}(-a^s\oslash d)\\
-                       \mathrm{diag}(-a^s\oslash d) & \mathrm{diag}(a^u\oslash d)\end{bmatrix}.
-
-    Works in both directions (covariance → precision and back). Exact. Shapes ``(..., m)``.
-    Raises ``ValueError`` if a 2×2 block is singular or not positive definite.
-    """
-    check_tensor("upper", upper, 1)
-    check_last_dims("lower", lower, (upper.shape[-1],))
-    check_last_dims("side", side, (upper.shape[-1],))
-    d = upper * lower - side * side
-    if not bool((d > 0).all()) or not bool((upper > 0).all()):
-        raise ValueError("side: the 2x2 blocks must be positive definite (upper > 0, upper*lower > side^2)")
-    return lower / d, upper / d, -side / d
 
 
 def as_observation(name: str, observation: DiagGaussian | Tensor, rest: tuple, mask: Tensor | None

@@ -53,7 +53,8 @@ from ._checks import (
     check_tensor,
 )
 from .filtering import FilterResult
-from .gaussian import Gaussian, _predict_core, _sym, condition_with_evidence
+from ._linalg import predict_core, symmetrize
+from .gaussian import Gaussian, condition_with_evidence
 from ._backends import Backend, implementation, select
 from ._backends.kalman_fast import compact, filter_fast, rts_compiled, smoothing_precision
 
@@ -65,6 +66,9 @@ __all__ = [
     "rts_smoother",
     "rts_smoother_reference",
     "stack_gaussians",
+    "check_filter_inputs",
+    "check_smoother_inputs",
+    "smoother_gains",
 ]
 
 # ---------------------------------------------------------------------------------------------
@@ -112,7 +116,7 @@ def kf_predict(
             check_finite("B", B.detach())
             check_finite("u", u.detach())
     offset = None if B is None or u is None else (B @ u.unsqueeze(-1)).squeeze(-1)
-    mean, cov = _predict_core(prior.mean, prior.cov, F, Q, offset)
+    mean, cov = predict_core(prior.mean, prior.cov, F, Q, offset)
     return Gaussian(mean, cov)
 
 
@@ -167,7 +171,7 @@ def stack_gaussians(beliefs: list[Gaussian], dim: int = -1) -> Gaussian:
 # ---------------------------------------------------------------------------------------------
 
 
-def _check_filter_inputs(
+def check_filter_inputs(
     y: Tensor, init: Gaussian, F: Tensor, H: Tensor, Q: Tensor, R: Tensor,
     mask: Tensor | None, B: Tensor | None, u: Tensor | None, validate: bool,
 ) -> tuple[Tensor, Tensor | None, Tensor | None, torch.Size]:
@@ -260,7 +264,7 @@ def kalman_filter_reference(
     r"""The book's Kalman filter loop: for :math:`t = 1..T`, update with :math:`y_t`
     (Eq. kf-update, :func:`kf_update`), then predict :math:`z_{t+1}` (Eq. kf-predict,
     :func:`kf_predict`). Same signature and result as :func:`kalman_filter`."""
-    y, mask, offsets, batch = _check_filter_inputs(y, init, F, H, Q, R, mask, B, u, validate)
+    y, mask, offsets, batch = check_filter_inputs(y, init, F, H, Q, R, mask, B, u, validate)
     eye = torch.eye(init.dim, dtype=y.dtype, device=y.device)
     prior, priors, posteriors, next_priors, logliks = init, [], [], [], []
     for t in range(y.shape[-2]):
@@ -314,7 +318,7 @@ def kalman_filter(
     elif backend == "parallel":
         result = implementation("kalman_filter", "parallel")(y, init, F, H, Q, R, mask, B, u, validate=validate)
     else:
-        y, mask, offsets, batch = _check_filter_inputs(y, init, F, H, Q, R, mask, B, u, validate)
+        y, mask, offsets, batch = check_filter_inputs(y, init, F, H, Q, R, mask, B, u, validate)
         which = select("kalman_filter", y, init.mean, init.cov, F, H, Q, R, offsets, backend=backend,
                        masked=mask is not None, shared_params=all(x.ndim == 2 for x in (F, H, Q, R)))
         result = filter_fast(y, init, F, H, Q, R, mask, offsets, batch, compiled=which == "compiled")
@@ -328,7 +332,9 @@ def kalman_filter(
 # ---------------------------------------------------------------------------------------------
 
 
-def _check_smoother_inputs(result: FilterResult, F: Tensor, Q: Tensor) -> tuple[Gaussian, Gaussian]:
+def check_smoother_inputs(result: FilterResult, F: Tensor, Q: Tensor) -> tuple[Gaussian, Gaussian]:
+    """The smoother's argument checks, shared by every smoother backend: ``(posteriors,
+    next priors)`` of a filter run with dense Gaussian beliefs."""
     if not isinstance(result, FilterResult) or not isinstance(result.posterior, Gaussian):
         raise ValueError(f"result: expected a FilterResult of Gaussians, got {type(result).__name__}")
     post, nxt = result.posterior, result.next_prior
@@ -346,19 +352,19 @@ def _check_smoother_inputs(result: FilterResult, F: Tensor, Q: Tensor) -> tuple[
     return post, nxt
 
 
-def _smoother_gains(post: Gaussian, nxt: Gaussian, F: Tensor, Q: Tensor) -> tuple[Tensor, Tensor]:
+def smoother_gains(post: Gaussian, nxt: Gaussian, F: Tensor, Q: Tensor) -> tuple[Tensor, Tensor]:
     r"""All smoother gains :math:`G_t = \Sigma^+_t F^\top (\Sigma^-_{t+1})^{-1}` and the
     conditional covariances :math:`L_t = \operatorname{Cov}[z_t\mid z_{t+1}, y_{\le t}] =
     (I - G_tF)\Sigma^+_t(I - G_tF)^\top + G_tQG_t^\top` (Joseph form, positive semi-definite)
     for ``t < T``, at once: ``(G, L)`` each ``(..., T-1, n, n)``."""
     P_f, P_p = post.cov[..., :-1, :, :], nxt.cov[..., :-1, :, :]
-    chol, info = torch.linalg.cholesky_ex(_sym(P_p))
+    chol, info = torch.linalg.cholesky_ex(symmetrize(P_p))
     if bool((info != 0).any()):
         raise ValueError("result: a predicted covariance is not positive definite (Q too small?)")
     Fs = F.unsqueeze(-3)
     G = torch.cholesky_solve(Fs @ P_f.transpose(-1, -2), chol).transpose(-1, -2)
     A = torch.eye(F.shape[-1], dtype=F.dtype, device=F.device) - G @ Fs
-    L = _sym(A @ P_f @ A.transpose(-1, -2) + G @ Q.unsqueeze(-3) @ G.transpose(-1, -2))
+    L = symmetrize(A @ P_f @ A.transpose(-1, -2) + G @ Q.unsqueeze(-3) @ G.transpose(-1, -2))
     return G, L
 
 
@@ -367,8 +373,8 @@ def rts_smoother_reference(result: FilterResult, F: Tensor, Q: Tensor) -> Gaussi
     :math:`G_t = \Sigma^+_t F^\top(\Sigma^-_{t+1})^{-1}`, :math:`\mu^s_t = \mu^+_t + G_t(\mu^s_{t+1} - \mu^-_{t+1})`,
     :math:`\Sigma^s_t = \Sigma^+_t + G_t(\Sigma^s_{t+1} - \Sigma^-_{t+1})G_t^\top`, the last as
     the sum of positive semi-definite terms :math:`L_t + G_t\Sigma^s_{t+1}G_t^\top` (see
-    :func:`_smoother_gains`). Same signature and result as :func:`rts_smoother`."""
-    post, nxt = _check_smoother_inputs(result, F, Q)
+    :func:`smoother_gains`). Same signature and result as :func:`rts_smoother`."""
+    post, nxt = check_smoother_inputs(result, F, Q)
     eye = torch.eye(post.dim, dtype=F.dtype, device=F.device)
     T = post.mean.shape[-2]
     smoothed = [post[(slice(None),) * (len(post.batch_shape) - 1) + (T - 1,)]]
@@ -380,7 +386,7 @@ def rts_smoother_reference(result: FilterResult, F: Tensor, Q: Tensor) -> Gaussi
         s = smoothed[-1]
         mean = p.mean + (G @ (s.mean - q.mean).unsqueeze(-1)).squeeze(-1)
         cov = A @ p.cov @ A.transpose(-1, -2) + G @ (Q + s.cov) @ G.transpose(-1, -2)
-        smoothed.append(Gaussian(mean, _sym(cov)))
+        smoothed.append(Gaussian(mean, symmetrize(cov)))
     return Gaussian.stack(smoothed[::-1])
 
 
@@ -391,7 +397,7 @@ def rts_smoother(result: FilterResult, F: Tensor, Q: Tensor, *, backend: Backend
     given :math:`y_{1:t}` on :math:`z_{t+1}`, averaged over the smoothed belief of
     :math:`z_{t+1}`: :math:`\mu^s_t = \mu^+_t + G_t(\mu^s_{t+1} - \mu^-_{t+1})`,
     :math:`\Sigma^s_t = L_t + G_t\Sigma^s_{t+1}G_t^\top` with the gains and conditional
-    covariances of :func:`_smoother_gains` computed for all steps at once (the backward loop
+    covariances of :func:`smoother_gains` computed for all steps at once (the backward loop
     is two small products per step). ``F, Q`` must be the transition and its noise used by
     the filter; ``result`` comes from :func:`kalman_filter`. Returns a Gaussian with mean
     ``(..., T, n)`` and cov ``(..., T, n, n)``. Covariances shared by the batch (broadcast
@@ -411,7 +417,7 @@ def rts_smoother(result: FilterResult, F: Tensor, Q: Tensor, *, backend: Backend
         return rts_smoother_reference(result, F, Q)
     if backend == "parallel":
         return implementation("rts_smoother", "parallel")(result, F, Q)
-    post, nxt = _check_smoother_inputs(result, F, Q)
+    post, nxt = check_smoother_inputs(result, F, Q)
     which = select("rts_smoother", post.mean, post.cov, nxt.mean, nxt.cov, F, Q, backend=backend,
                    shared_params=F.ndim == 2 and Q.ndim == 2)
     dtype = F.dtype
@@ -424,7 +430,7 @@ def rts_smoother(result: FilterResult, F: Tensor, Q: Tensor, *, backend: Backend
     batch = post.batch_shape[:-1]
     # Covariances shared by the batch (broadcast views from kalman_filter) are processed once.
     shared = Gaussian(post.mean, compact(post.cov, 3)), Gaussian(nxt.mean, compact(nxt.cov, 3))
-    G, L = _smoother_gains(shared[0], shared[1], F, Q)
+    G, L = smoother_gains(shared[0], shared[1], F, Q)
     m_f, m_p = post.mean.expand(*batch, T, n), nxt.mean.expand(*batch, T, n)
     Gt = G.transpose(-1, -2)
     m_s, c_s = m_f[..., T - 1, :], shared[0].cov[..., T - 1, :, :]
@@ -432,7 +438,7 @@ def rts_smoother(result: FilterResult, F: Tensor, Q: Tensor, *, backend: Backend
     for t in range(T - 2, -1, -1):
         g = G[..., t, :, :]
         m_s = m_f[..., t, :] + (g @ (m_s - m_p[..., t, :]).unsqueeze(-1)).squeeze(-1)
-        c_s = _sym(L[..., t, :, :] + g @ c_s @ Gt[..., t, :, :])
+        c_s = symmetrize(L[..., t, :, :] + g @ c_s @ Gt[..., t, :, :])
         means.append(m_s)
         covs.append(c_s)
     mean = torch.stack(means[::-1], -2)

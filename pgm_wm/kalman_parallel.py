@@ -50,9 +50,10 @@ import torch
 from torch import Tensor
 
 from .filtering import FilterResult
-from .gaussian import _LOG_2PI, Gaussian, _sym
+from ._linalg import LOG_2PI, symmetrize
+from .gaussian import Gaussian
 from ._backends.kalman_fast import smoothing_precision
-from .kalman import _check_filter_inputs, _check_smoother_inputs, _smoother_gains
+from .kalman import check_filter_inputs, check_smoother_inputs, smoother_gains
 
 __all__ = ["associative_scan", "parallel_kalman_filter", "parallel_rts_smoother", "scan_filter"]
 
@@ -122,9 +123,9 @@ def _filter_op(a: Elems, b: Elems) -> Elems:
     return (
         A_j @ MA,
         _mv(A_j, Mb) + b_j,
-        _sym(A_j @ MC @ A_j.transpose(-1, -2)) + C_j,
+        symmetrize(A_j @ MC @ A_j.transpose(-1, -2)) + C_j,
         _mv(A_it, Y[..., 0]) + eta_i,
-        _sym(A_it @ Y[..., 1:]) + J_i,
+        symmetrize(A_it @ Y[..., 1:]) + J_i,
     )
 
 
@@ -132,7 +133,7 @@ def _smoother_op(a: Elems, b: Elems) -> Elems:
     """The smoothing operator (``a`` the earlier step, ``b`` the later one)."""
     E_i, g_i, L_i = a
     E_j, g_j, L_j = b
-    return E_i @ E_j, _mv(E_i, g_j) + g_i, _sym(E_i @ L_j @ E_i.transpose(-1, -2)) + L_i
+    return E_i @ E_j, _mv(E_i, g_j) + g_i, symmetrize(E_i @ L_j @ E_i.transpose(-1, -2)) + L_i
 
 
 def scan_filter(y: Tensor, w: Tensor, c: Tensor, m0: Tensor, P0: Tensor, F: Tensor, H: Tensor, Q: Tensor,
@@ -156,7 +157,7 @@ def scan_filter(y: Tensor, w: Tensor, c: Tensor, m0: Tensor, P0: Tensor, F: Tens
     K0 = P0 @ H0.transpose(-1, -2) @ torch.linalg.inv(S0) * w[0, :, None, None]
     A0 = eye - K0 @ H0
     b1 = m0 + _mv(K0, y[0] - _mv(H0, m0))
-    C1 = _sym(A0 @ P0 @ A0.transpose(-1, -2) + K0 @ R0 @ K0.transpose(-1, -2))
+    C1 = symmetrize(A0 @ P0 @ A0.transpose(-1, -2) + K0 @ R0 @ K0.transpose(-1, -2))
     # Steps 2..T: elements (A, b, C, η, J) from the update of N(F z + c, Q) with y_t.
     S = H @ Q_prev @ H.transpose(-1, -2) + R_rest
     HtSinv = torch.linalg.solve(S, H.expand(S.shape[0], N, m, n)).transpose(-1, -2) * w[1:, :, None, None]
@@ -165,10 +166,10 @@ def scan_filter(y: Tensor, w: Tensor, c: Tensor, m0: Tensor, P0: Tensor, F: Tens
     resid = y[1:] - _mv(H, c[:-1])
     A = IKH @ F
     b = c[:-1] + _mv(K, resid)
-    C = _sym(IKH @ Q_prev @ IKH.transpose(-1, -2) + K @ R_rest @ K.transpose(-1, -2))
+    C = symmetrize(IKH @ Q_prev @ IKH.transpose(-1, -2) + K @ R_rest @ K.transpose(-1, -2))
     FtHtSinv = F.transpose(-1, -2) @ HtSinv
     eta = _mv(FtHtSinv, resid)
-    J = _sym(FtHtSinv @ H @ F)
+    J = symmetrize(FtHtSinv @ H @ F)
     zeros_nn = torch.zeros(1, N, n, n, dtype=dt, device=dev)
     elems = (
         torch.cat([zeros_nn, A.expand(T - 1, N, n, n)]), torch.cat([b1[None], b]), torch.cat([C1[None], C]),
@@ -178,15 +179,15 @@ def scan_filter(y: Tensor, w: Tensor, c: Tensor, m0: Tensor, P0: Tensor, F: Tens
 
     # Predictions and the exact log-likelihood for all steps at once (Eqs. kf-predict, kf-loglik).
     m_next = _mv(F, m_post) + c
-    P_next = _sym(F @ P_post @ F.transpose(-1, -2)) + Q
+    P_next = symmetrize(F @ P_post @ F.transpose(-1, -2)) + Q
     m_prior = torch.cat([m0[None], m_next[:-1]])
     P_prior = torch.cat([P0[None], P_next[:-1]])
-    S_all = _sym(H @ P_prior @ H.transpose(-1, -2)) + R
+    S_all = symmetrize(H @ P_prior @ H.transpose(-1, -2)) + R
     chol, _ = torch.linalg.cholesky_ex(S_all)
     innov = y - _mv(H, m_prior)
     sol = torch.linalg.solve_triangular(chol, innov.unsqueeze(-1), upper=False).squeeze(-1)
     logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
-    ll = -0.5 * (sol.square().sum(-1) + logdet + m * _LOG_2PI)
+    ll = -0.5 * (sol.square().sum(-1) + logdet + m * LOG_2PI)
     ll = torch.where(w > 0, ll, torch.zeros((), dtype=dt))
     return m_prior, P_prior, m_post, P_post, m_next, P_next, ll
 
@@ -199,7 +200,7 @@ def parallel_kalman_filter(
     """The Kalman filter by associative scan, :math:`O(\\log T)` sequential depth; same
     signature, checks and result as :func:`pgm_wm.kalman.kalman_filter` (exact, not an
     approximation: tested equal to the sequential filter to 1e-10 in float64)."""
-    y, mask, offsets, batch = _check_filter_inputs(y, init, F, H, Q, R, mask, B, u, validate)
+    y, mask, offsets, batch = check_filter_inputs(y, init, F, H, Q, R, mask, B, u, validate)
     T, n = y.shape[-2], init.dim
     N = math.prod(batch)
     dt, dev = y.dtype, y.device
@@ -232,7 +233,7 @@ def parallel_rts_smoother(result: FilterResult, F: Tensor, Q: Tensor) -> Gaussia
     """The RTS smoother by associative scan from the end, :math:`O(\\log T)` sequential depth;
     same arguments and result as :func:`pgm_wm.kalman.rts_smoother` (elements in the module
     docstring; the conditional covariances in the Joseph form)."""
-    post, nxt = _check_smoother_inputs(result, F, Q)
+    post, nxt = check_smoother_inputs(result, F, Q)
     dtype = F.dtype
     m_f, P_f, m_n, P_n, F, Q = smoothing_precision(post, nxt, F, Q)     # float32: run in float64
     post, nxt = Gaussian(m_f, P_f), Gaussian(m_n, P_n)
@@ -241,7 +242,7 @@ def parallel_rts_smoother(result: FilterResult, F: Tensor, Q: Tensor) -> Gaussia
     mean = post.mean.expand(*batch, T, n)
     if T == 1:
         return Gaussian(mean, post.cov.expand(*batch, T, n, n)).to(dtype)
-    G, L = _smoother_gains(post, nxt, F, Q)                                  # (..., T-1, n, n)
+    G, L = smoother_gains(post, nxt, F, Q)                                  # (..., T-1, n, n)
     G = G.expand(*batch, T - 1, n, n)
     L = L.expand(*batch, T - 1, n, n)
     g = mean[..., :-1, :] - _mv(G, nxt.mean.expand(*batch, T, n)[..., :-1, :])   # μ⁺ − G μ⁻_{t+1}

@@ -40,13 +40,12 @@ from .factorized import (
     as_observation,
     update_unchecked,
     diagonal_factorized_filter,
-    factorized_filter,
     factorized_predict_from_matrix,
 )
 from .filtering import FilterResult, filter_loop
 from .layers import elup1, mlp
-from .locally_linear_jit import band_pairs, locally_linear_filter_jit
-from . import _jit
+from ._backends import select
+from ._backends.locally_linear_jit import band_pairs, locally_linear_filter_jit
 
 __all__ = [
     "elup1",
@@ -153,7 +152,7 @@ class BlockMatrix(nn.Module):
 
 @dataclass(frozen=True)
 class BandParameters:
-    """A locally linear transition in band storage (:mod:`pgm_wm.locally_linear_jit`):
+    """A locally linear transition in band storage (:mod:`pgm_wm._backends.locally_linear_jit`):
     ``basis: (4, K, nb)`` values of the blocks 11, 12, 21, 22 at the band pairs ``(bi, bj)``,
     ``ident: (nb,)`` what is added to the diagonal blocks, and the coefficient net's ``weight:
     (K, 2m)`` and ``bias: (K,)`` (``None`` for one basis matrix)."""
@@ -288,7 +287,7 @@ class LocallyLinearTransition(BlockMatrix):
 
     def band_parameters(self) -> "BandParameters":
         """The transition in the band storage of the compiled filter
-        (:mod:`pgm_wm.locally_linear_jit`): basis values at the band pairs, differentiable."""
+        (:mod:`pgm_wm._backends.locally_linear_jit`): basis values at the band pairs, differentiable."""
         bi, bj = band_pairs(self.latent_obs_dim, self.bandwidth)
         ii, jj = torch.as_tensor(bi), torch.as_tensor(bj)
         basis = torch.stack([blk[:, ii, jj] for blk in (self.basis_11, self.basis_12, self.basis_21, self.basis_22)])
@@ -413,9 +412,10 @@ def locally_linear_filter(
 
     ``backend="reference"`` runs the book's loop (:func:`pgm_wm.filtering.filter_loop` with
     ``transition.predictor()``); ``"compiled"`` the compiled loop with its hand-written backward
-    pass (:mod:`pgm_wm.locally_linear_jit`, tested equal to the reference, values and gradients,
-    in float32 and float64); ``"auto"`` the compiled loop for CPU tensors when numba is
-    available. ``diagonal_only`` zeroes the side covariance of every prediction and of the prior.
+    pass (:mod:`pgm_wm._backends.locally_linear_jit`, tested equal to the reference, values and
+    gradients, in float32 and float64); ``"auto"`` lets the backend table choose
+    (:mod:`pgm_wm._backends`: the compiled loop for CPU tensors where numba is available, else the
+    reference loop). ``diagonal_only`` zeroes the side covariance of every prediction and of the prior.
 
     Args:
         prior: belief of the first step, batch ``(B,)``.
@@ -425,13 +425,11 @@ def locally_linear_filter(
         mask: ``(B, T)`` bool, True = observed.
         inputs: the sum of the causes known before the loop, ``mean: (B, T, 2m)``.
     """
-    if backend not in ("auto", "reference", "compiled"):
-        raise ValueError(f"backend: expected 'auto', 'reference' or 'compiled', got {backend!r}")
     if diagonal_only:
         prior = prior.drop_side()
     w = observation.mean
-    if backend == "auto":
-        backend = "compiled" if _jit.enabled(w) and w.ndim == 3 else "reference"
+    backend = select("locally_linear_factorized_filter", w, observation.var, prior.mean, backend=backend,
+                     masked=mask is not None)
     if backend == "reference":
         predict_step = transition.predictor()
 

@@ -11,7 +11,7 @@ import torch
 
 from pgm_wm.acrkn import NormBoundedTransition
 from pgm_wm.beliefs import DiagGaussian, FactorizedBelief
-from pgm_wm.locally_linear_jit import band_pairs
+from pgm_wm._backends.locally_linear_jit import band_pairs
 from pgm_wm.rkn import LocallyLinearTransition, locally_linear_filter
 
 TOL = {torch.float64: dict(rtol=1e-9, atol=1e-10), torch.float32: dict(rtol=2e-3, atol=2e-4)}
@@ -95,3 +95,56 @@ def test_backend_argument_is_checked():
     tr, prior, obs, mask, inputs = _problem(torch.float64)
     with pytest.raises(ValueError, match="backend"):
         locally_linear_filter(prior, tr, obs, mask, inputs, backend="fast!")
+
+
+@pytest.mark.parametrize("diagonal_only", [False, True])
+def test_the_readable_twin_equals_the_compiled_loop(diagonal_only):
+    """packed_reference (tensor operations on the kernel's own packed arguments) equals the
+    compiled forward pass to rounding (float64)."""
+    from pgm_wm._backends.locally_linear_jit import locally_linear_filter_jit, packed_reference
+
+    g = torch.Generator().manual_seed(3)
+    T, m, N, K, bw = 6, 3, 4, 2, 1
+    bi, bj = band_pairs(m, bw)
+    r = lambda *s: torch.randn(*s, generator=g, dtype=torch.float64)  # noqa: E731
+    x0 = torch.cat([r(2 * m, N), 1 + r(m, N).abs(), 0.1 * r(m, N), 2 + r(m, N).abs()])
+    args = (x0, r(T, m, N), 0.2 + r(T, m, N).abs(), (torch.rand(T, N, generator=g) < 0.6).double(),
+            torch.cat([r(T, 2 * m, N), 0.1 * r(T, m, N).abs(), torch.zeros(T, m, N, dtype=torch.float64),
+                       0.1 * r(T, m, N).abs()], 1),
+            0.3 * r(4, K, len(bi)), r(K, 2 * m), r(K), torch.as_tensor(bi == bj, dtype=torch.float64))
+    X1, P1 = locally_linear_filter_jit(*args, bi, bj, diagonal_only)
+    X2, P2 = packed_reference(*args, bi, bj, diagonal_only)
+    torch.testing.assert_close(X1, X2, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(P1, P2, rtol=1e-12, atol=1e-12)
+
+
+def test_second_derivatives_through_the_compiled_loop_equal_the_reference():
+    """A gradient penalty (create_graph=True): its gradient with respect to every parameter is
+    the same through the compiled loop (whose backward recomputes by the readable twin) and
+    through the book's loop."""
+    tr, prior, obs, mask, inputs = _problem(torch.float64, K=3)
+    params = [p for p in tr.parameters() if p.requires_grad]
+
+    def penalty(backend):
+        out = locally_linear_filter(prior, tr, obs, mask, inputs, backend=backend)
+        loss = out.next_prior.mean.square().sum() + out.next_prior.var_upper.log().sum()
+        grads = torch.autograd.grad(loss, params + [obs.mean], create_graph=True)
+        return torch.autograd.grad(sum(gr.square().sum() for gr in grads), params)
+
+    for a, b in zip(penalty("compiled"), penalty("reference")):
+        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-10)
+
+
+def test_the_table_routes_the_locally_linear_filter():
+    from pgm_wm._backends import Call, choose, use_compiled
+
+    op = "locally_linear_factorized_filter"
+    assert choose(op, Call(needs_grad=True)) == "compiled"
+    assert choose(op, Call(device="cuda")) == "reference"
+    assert choose(op, Call(transformed=True)) == "reference"
+    with use_compiled(False):
+        assert choose(op, Call()) == "reference"
+        with pytest.raises(ValueError, match="backend"):
+            choose(op, Call(), "compiled")
+    with pytest.raises(ValueError, match="backend"):
+        choose(op, Call(), "tensor")

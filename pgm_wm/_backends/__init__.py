@@ -9,7 +9,7 @@ operation                              reference   tensor    compiled    paralle
 ``kalman_filter``                      yes         yes       yes         yes
 ``rts_smoother``                       yes         yes       yes         yes
 ``diagonal_factorized_filter``         yes         yes       yes         yes
-``locally_linear_factorized_filter``   yes         yes       yes         no
+``locally_linear_factorized_filter``   yes         no        yes         no
 =====================================  ==========  ========  ==========  ==========
 
 * ``"reference"``: the book's loop (:func:`pgm_wm.kalman.kalman_filter_reference`,
@@ -21,9 +21,12 @@ operation                              reference   tensor    compiled    paralle
 * ``"parallel"``: the associative scan, :math:`O(\log T)` sequential depth
   (:mod:`pgm_wm.kalman_parallel`, :func:`pgm_wm.factorized.parallel_factorized_filter`).
 
-``locally_linear_factorized_filter`` is a slot for the locally linear factorized loop (the
-transition a softmax-weighted mixture of basis matrices) with its compiled kernel and
-hand-written backward pass: it follows the rules of ``diagonal_factorized_filter``.
+``locally_linear_factorized_filter`` is the RKN's loop with a locally linear transition (a
+softmax-weighted mixture of basis matrices, :func:`pgm_wm.rkn.locally_linear_filter`): its
+reference loop runs tensor operations step by step, its compiled kernel
+(:mod:`pgm_wm._backends.locally_linear_jit`) has a hand-written backward pass; it follows the
+rules of ``diagonal_factorized_filter`` and falls back to its reference loop where the compiled
+one cannot serve a call.
 
 **The rules** (:func:`choose`; ``backend="auto"``, which ``"fast"`` means too):
 
@@ -39,7 +42,7 @@ hand-written backward pass: it follows the rules of ``diagonal_factorized_filter
    goes through the hand-written backward pass; when that backward pass must itself be
    differentiable, ``create_graph=True`` for a gradient penalty, the autograd function
    recomputes it by the tensor path, so second derivatives are exact).
-2. ``"tensor"`` otherwise.
+2. ``"tensor"`` otherwise (``"reference"`` for an operation without a tensor path).
 
 ``"auto"`` never picks ``"reference"`` or ``"parallel"``. An explicit ``"reference"``,
 ``"tensor"`` or ``"parallel"`` is always served (where the operation has it); an explicit
@@ -72,7 +75,7 @@ IMPLEMENTATIONS: dict[str, tuple[str, ...]] = {
     "kalman_filter": ("reference", "tensor", "compiled", "parallel"),
     "rts_smoother": ("reference", "tensor", "compiled", "parallel"),
     "diagonal_factorized_filter": ("reference", "tensor", "compiled", "parallel"),
-    "locally_linear_factorized_filter": ("reference", "tensor", "compiled"),
+    "locally_linear_factorized_filter": ("reference", "compiled"),
 }
 # The implementations with the operation's public signature, as "module:function" (imported when
 # first asked for, so that no module imports another to offer it as a backend: pgm_wm.kalman
@@ -85,7 +88,7 @@ REGISTRY: dict[tuple[str, str], str] = {
     ("rts_smoother", "parallel"): "pgm_wm.kalman_parallel:parallel_rts_smoother",
     ("diagonal_factorized_filter", "reference"): "pgm_wm.factorized:factorized_filter",
     ("diagonal_factorized_filter", "parallel"): "pgm_wm.factorized:parallel_factorized_filter",
-    # ("locally_linear_factorized_filter", "reference"): the readable loop, once it exists
+    ("locally_linear_factorized_filter", "reference"): "pgm_wm.rkn:locally_linear_filter",
 }
 # operations whose compiled loop has a backward pass (the others serve calls without a gradient)
 _COMPILED_BACKWARD = {"diagonal_factorized_filter", "locally_linear_factorized_filter"}
@@ -193,7 +196,9 @@ def choose(op: str, call: Call, backend: str = "auto") -> str:
     obstacle = _compiled_obstacle(op, call)
     if name == "compiled" and obstacle is not None:
         raise ValueError(f"backend: 'compiled' cannot serve this call of {op}: {obstacle}")
-    return "compiled" if obstacle is None else "tensor"
+    if obstacle is None:
+        return "compiled"
+    return "tensor" if "tensor" in impls else "reference"
 
 
 def select(op: str, *tensors: Tensor | None, backend: str = "auto", masked: bool = False,

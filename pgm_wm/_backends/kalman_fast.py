@@ -28,7 +28,8 @@ import torch
 from torch import Tensor
 
 from ..filtering import FilterResult
-from ..gaussian import _LOG_2PI, Gaussian, _predict_cov, _sandwich_operator, _sym
+from .._linalg import LOG_2PI, predict_cov, sandwich_operator, symmetrize
+from ..gaussian import Gaussian
 from .compiler import as_array, contiguous_array, empty
 from .kalman_jit import filter_loop, smoother_loop
 
@@ -60,7 +61,7 @@ def _joseph_step(P: Tensor, H: Tensor, R: Tensor, w: Tensor | None, eye: Tensor)
     if w is not None:
         K = K * w[..., None, None]
     A = eye - K @ H
-    return _sym(A @ P @ A.transpose(-1, -2) + K @ R @ K.transpose(-1, -2)), K, S_inv, logdet
+    return symmetrize(A @ P @ A.transpose(-1, -2) + K @ R @ K.transpose(-1, -2)), K, S_inv, logdet
 
 
 def filter_fast(
@@ -94,14 +95,14 @@ def filter_fast(
     if shared:
         # One covariance sequence for the whole batch (Riccati recursion, Eqs. kf-update/kf-predict).
         w = None if w_all is None else w_all[0]
-        op_F = _sandwich_operator(F)
+        op_F = sandwich_operator(F)
         steady_ok = mask is None and not needs_grad
         P, Ps, Ks, Sinvs, logdets, Pps = init.cov, [], [], [], [], []
         t_steady = T                           # first step from which everything repeats
         for t in range(T):
             Ps.append(P)
             step = _joseph_step(P, H, R, None if w is None else w[t], eye)
-            nxt = _predict_cov(step[0], F, Q, op_F)
+            nxt = predict_cov(step[0], F, Q, op_F)
             for lst, x in zip((Pps, Ks, Sinvs, logdets), step):
                 lst.append(x)
             if steady_ok and torch.equal(nxt, P):
@@ -195,7 +196,7 @@ def filter_fast(
                 Fb = flat(F, 2) if F.ndim > 2 else F
                 e = y_tm[t] - (prior.mean.unsqueeze(-2) @ (flat(H, 2) if H.ndim > 2 else H).transpose(-1, -2)).squeeze(-2)
                 mean_p = mean + (K @ e.unsqueeze(-1)).squeeze(-1)
-                P = _sym(Fb @ Pp @ Fb.transpose(-1, -2)) + (flat(Q, 2) if Q.ndim > 2 else Q)
+                P = symmetrize(Fb @ Pp @ Fb.transpose(-1, -2)) + (flat(Q, 2) if Q.ndim > 2 else Q)
                 mean = (Fb @ mean_p.unsqueeze(-1)).squeeze(-1)
                 if off_tm is not None:
                     mean = mean + off_tm[t]
@@ -213,7 +214,7 @@ def filter_fast(
 
     # Eq. (kf-loglik) for all steps at once: log N(e_t | 0, S_t).
     quad = (innov.unsqueeze(-1) * innov.unsqueeze(-2) * S_inv_tm).flatten(-2).sum(-1)   # (T, N)
-    ll = -0.5 * (quad + logdet_tm + m * _LOG_2PI)
+    ll = -0.5 * (quad + logdet_tm + m * LOG_2PI)
     if w_all is not None:
         ll = torch.where(w_all.T > 0, ll, torch.zeros((), dtype=dt))
     ll = ll.T.reshape(*batch, T)

@@ -59,7 +59,9 @@ vector instructions. A belief is one packed array of ``5m`` rows, :math:`[z^u; z
 \sigma^s; \sigma^l]` (:data:`FIELDS`), so that every loop reads and writes few distinct arrays;
 the small matrix products of a step (logits, mixture, and their adjoints) are loops over the
 sequences (:func:`_matmul`). Values and gradients are tested equal to autograd of the reference loop
-in float32 and float64 (``tests/test_locally_linear_jit.py``).
+in float32 and float64 (``tests/test_locally_linear_jit.py``), and so is
+:func:`packed_reference`, the same loop as tensor operations, which also serves the second
+derivatives (``create_graph=True``) the hand-written backward pass does not compute.
 """
 
 from __future__ import annotations
@@ -68,9 +70,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._jit import as_array, jit
+from .compiler import as_array, kernel
 
-__all__ = ["FIELDS", "band_pairs", "locally_linear_filter_jit"]
+__all__ = ["FIELDS", "band_pairs", "locally_linear_filter_jit", "packed_reference"]
 
 FIELDS = ("mean_upper", "mean_lower", "var_upper", "cov_side", "var_lower")
 """The five ``m``-row blocks of a packed belief, in order."""
@@ -87,15 +89,15 @@ def band_pairs(m: int, bandwidth: int) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
 
 
-@jit
+@kernel
 def _matmul(a, b, out, accumulate):
     """``out (+)= a @ b`` for C-contiguous ``a: (I, K)``, ``b: (K, N)``: the loop over ``N`` (the
     sequences) innermost, so it runs as vector instructions. Written out instead of ``np.dot``:
     these products are small, and a multi-threaded BLAS (OpenBLAS starts threads from about
     N = 128) can be a hundred times slower on a machine whose cores are busy."""
-    I, K = a.shape
+    rows, K = a.shape
     N = b.shape[1]
-    for i in range(I):
+    for i in range(rows):
         row = out[i]
         if not accumulate:
             row[:] = 0
@@ -106,7 +108,7 @@ def _matmul(a, b, out, accumulate):
                 row[n] += aik * bk[n]
 
 
-@jit
+@kernel
 def _forward(x0, w, r, mu, inp, basis_t, ident, bi, bj, Wc, bc, has_coef, diag_only, one, X, P, alpha, Aval):
     """Forward loop, batch last: ``x0: (5m, N)`` the first prior (packed), ``w, r: (T, m, N)``,
     ``mu: (T, N)`` 1/0, ``inp: (T, 5m, N)`` the known causes (means, then variances plus the
@@ -119,7 +121,7 @@ def _forward(x0, w, r, mu, inp, basis_t, ident, bi, bj, Wc, bc, has_coef, diag_o
     T, m, N = w.shape
     K, nb = basis_t.shape[1], bi.shape[0]
     two, zero = one + one, one - one
-    u, l, su, ss, sl = 0, m, 2 * m, 3 * m, 4 * m       # row offsets of the packed fields
+    u, lo, su, ss, sl = 0, m, 2 * m, 3 * m, 4 * m       # row offsets of the packed fields
     logit = np.empty((K, N), dtype=x0.dtype)
     X[0] = x0
     for t in range(T):
@@ -133,7 +135,7 @@ def _forward(x0, w, r, mu, inp, basis_t, ident, bi, bj, Wc, bc, has_coef, diag_o
                 ge = g * (wt[i, n] - x[u + i, n])
                 rho = (one - mt) + rt * g
                 post[u + i, n] = x[u + i, n] + vu * ge
-                post[l + i, n] = x[l + i, n] + vs * ge
+                post[lo + i, n] = x[lo + i, n] + vs * ge
                 post[su + i, n] = vu * rho
                 post[ss + i, n] = vs * rho
                 post[sl + i, n] = vl - vs * vs * g
@@ -166,10 +168,10 @@ def _forward(x0, w, r, mu, inp, basis_t, ident, bi, bj, Wc, bc, has_coef, diag_o
             i, j = bi[p], bj[p]
             for n in range(N):
                 a11, a12, a21, a22 = A[p, n], A[nb + p, n], A[2 * nb + p, n], A[3 * nb + p, n]
-                pu, pl = post[u + j, n], post[l + j, n]
+                pu, pl = post[u + j, n], post[lo + j, n]
                 qu, qs, ql = post[su + j, n], post[ss + j, n], post[sl + j, n]
                 nxt[u + i, n] += a11 * pu + a12 * pl
-                nxt[l + i, n] += a21 * pu + a22 * pl
+                nxt[lo + i, n] += a21 * pu + a22 * pl
                 nxt[su + i, n] += a11 * (a11 * qu + two * a12 * qs) + a12 * a12 * ql
                 nxt[ss + i, n] += a21 * a11 * qu + (a22 * a11 + a21 * a12) * qs + a22 * a12 * ql
                 nxt[sl + i, n] += a21 * (a21 * qu + two * a22 * qs) + a22 * a22 * ql
@@ -177,7 +179,7 @@ def _forward(x0, w, r, mu, inp, basis_t, ident, bi, bj, Wc, bc, has_coef, diag_o
             nxt[ss:ss + m] = zero
 
 
-@jit
+@kernel
 def _backward(X, P, w, r, mu, basis, bi, bj, WcT, has_coef, diag_only, one, alpha, Aval, dX, dP,
               g_w, g_r, g_inp, g_A, g_logit):
     """Backward loop (module docstring): from the saved beliefs ``X, P``, ``alpha`` and ``Aval``
@@ -190,7 +192,7 @@ def _backward(X, P, w, r, mu, basis, bi, bj, WcT, has_coef, diag_only, one, alph
     T, m, N = w.shape
     K, nb = basis.shape[0], bi.shape[0]
     two, zero = one + one, one - one
-    u, l, su, ss, sl = 0, m, 2 * m, 3 * m, 4 * m
+    u, lo, su, ss, sl = 0, m, 2 * m, 3 * m, 4 * m
     dot = np.empty(N, dtype=X.dtype)
     bp = np.empty((5 * m, N), dtype=X.dtype)            # adjoint of the posterior of step t
     for t in range(T - 1, -1, -1):
@@ -205,9 +207,9 @@ def _backward(X, P, w, r, mu, basis, bi, bj, WcT, has_coef, diag_only, one, alph
             i, j = bi[p], bj[p]
             for n in range(N):
                 a11, a12, a21, a22 = A[p, n], A[nb + p, n], A[2 * nb + p, n], A[3 * nb + p, n]
-                pu, pl = post[u + j, n], post[l + j, n]
+                pu, pl = post[u + j, n], post[lo + j, n]
                 qu, qs, ql = post[su + j, n], post[ss + j, n], post[sl + j, n]
-                lu, ll = lam[u + i, n], lam[l + i, n]
+                lu, ll = lam[u + i, n], lam[lo + i, n]
                 ku, ks, kl = lam[su + i, n], lam[ss + i, n], lam[sl + i, n]
                 u1, u2 = a11 * qu + a12 * qs, a11 * qs + a12 * ql
                 v1, v2 = a21 * qu + a22 * qs, a21 * qs + a22 * ql
@@ -216,7 +218,7 @@ def _backward(X, P, w, r, mu, basis, bi, bj, WcT, has_coef, diag_only, one, alph
                 dA[2 * nb + p, n] = two * kl * v1 + ks * u1 + ll * pu
                 dA[3 * nb + p, n] = two * kl * v2 + ks * u2 + ll * pl
                 bp[u + j, n] += a11 * lu + a21 * ll
-                bp[l + j, n] += a12 * lu + a22 * ll
+                bp[lo + j, n] += a12 * lu + a22 * ll
                 bp[su + j, n] += a11 * (a11 * ku + a21 * ks) + a21 * a21 * kl
                 bp[ss + j, n] += two * (a11 * a12 * ku + a21 * a22 * kl) + (a22 * a11 + a21 * a12) * ks
                 bp[sl + j, n] += a12 * (a12 * ku + a22 * ks) + a22 * a22 * kl
@@ -243,7 +245,7 @@ def _backward(X, P, w, r, mu, basis, bi, bj, WcT, has_coef, diag_only, one, alph
                 g = mt / d
                 e = wt[i, n] - zu
                 rho = (one - mt) + rt * g
-                bpu, bpl = bp[u + i, n], bp[l + i, n]
+                bpu, bpl = bp[u + i, n], bp[lo + i, n]
                 bqu, bqs, bql = bp[su + i, n], bp[ss + i, n], bp[sl + i, n]
                 sz = bpu * vu + bpl * vs
                 be = g * sz
@@ -253,7 +255,7 @@ def _backward(X, P, w, r, mu, basis, bi, bj, WcT, has_coef, diag_only, one, alph
                 g_w[t, i, n] = be
                 g_r[t, i, n] = g * brho + bd
                 lam[u + i, n] += bpu - be
-                lam[l + i, n] += bpl
+                lam[lo + i, n] += bpl
                 lam[su + i, n] += g * e * bpu + rho * bqu + bd
                 lam[ss + i, n] += g * e * bpl + rho * bqs - two * vs * g * bql
                 lam[sl + i, n] += bql
@@ -263,6 +265,41 @@ def _backward(X, P, w, r, mu, basis, bi, bj, WcT, has_coef, diag_only, one, alph
 
 def _arr(x: Tensor) -> np.ndarray:
     return np.ascontiguousarray(as_array(x))
+
+
+def packed_reference(x0: Tensor, w: Tensor, r: Tensor, mu: Tensor | None, inp: Tensor, basis: Tensor,
+                     Wc: Tensor | None, bc: Tensor | None, ident: Tensor, bi: np.ndarray, bj: np.ndarray,
+                     diag_only: bool = False) -> tuple[Tensor, Tensor]:
+    """:func:`locally_linear_filter_jit` as tensor operations, step by step, on the same packed,
+    batch-last arguments: the compiled loop's readable twin (tested equal to it, and to the
+    book's loop). Differentiable to any order; the compiled backward pass recomputes through it
+    when a gradient of a gradient is asked for. Returns ``(X, P)``."""
+    T, m, N = w.shape
+    ii, jj = torch.as_tensor(bi), torch.as_tensor(bj)
+    x, Xs, Ps = x0, [x0], []
+    for t in range(T):
+        zu, zl, vu, vs, vl = x.split(m)
+        mt = torch.ones_like(w[t, :1]) if mu is None else mu[t][None]
+        g = mt / (vu + r[t])
+        ge = g * (w[t] - zu)
+        rho = (1.0 - mt) + r[t] * g
+        post = torch.cat([zu + vu * ge, zl + vs * ge, vu * rho, vs * rho, vl - vs * vs * g])
+        Ps.append(post)
+        zp = post[:2 * m]
+        alpha = torch.ones_like(zp[:1]) if Wc is None else torch.softmax(Wc @ zp + bc[:, None], dim=0)
+        A = torch.einsum("xkp,kn->xpn", basis, alpha)                          # (4, nb, N)
+        a11, a12, a21, a22 = A[0] + ident[:, None], A[1], A[2], A[3] + ident[:, None]
+        pu, pl, qu, qs, ql = (post[k * m + jj] for k in range(5))
+        rows = [a11 * pu + a12 * pl, a21 * pu + a22 * pl,
+                a11 * (a11 * qu + 2 * a12 * qs) + a12 * a12 * ql,
+                a21 * a11 * qu + (a22 * a11 + a21 * a12) * qs + a22 * a12 * ql,
+                a21 * (a21 * qu + 2 * a22 * qs) + a22 * a22 * ql]
+        nxt = inp[t] + torch.cat([torch.zeros_like(zu).index_add(0, ii, row) for row in rows])
+        if diag_only:
+            nxt = torch.cat([nxt[:3 * m], torch.zeros_like(nxt[3 * m:4 * m]), nxt[4 * m:]])
+        Xs.append(nxt)
+        x = nxt
+    return torch.stack(Xs), torch.stack(Ps)
 
 
 class _LocallyLinearFilter(torch.autograd.Function):
@@ -282,13 +319,15 @@ class _LocallyLinearFilter(torch.autograd.Function):
         basis_k = basis.detach().permute(1, 0, 2).reshape(K, 4 * nb)          # (K, 4 nb)
         _forward(_arr(x0), _arr(w), _arr(r), _arr(mu), _arr(inp), _arr(basis_k.T), _arr(ident), bi, bj, _arr(Wc_),
                  _arr(bc_), has_coef, diag_only, one, X.numpy(), P.numpy(), alpha.numpy(), Aval.numpy())
-        ctx.save_for_backward(X, P, w, r, mu, basis_k, Wc_, alpha, Aval)
+        ctx.save_for_backward(X, P, w, r, mu, basis_k, Wc_, alpha, Aval, x0, inp, basis, Wc, bc, ident)
         ctx.bi, ctx.bj, ctx.diag_only, ctx.has_coef = bi, bj, diag_only, has_coef
         return X, P
 
     @staticmethod
     def backward(ctx, dX, dP):  # noqa: D102
-        X, P, w, r, mu, basis_k, Wc_, alpha, Aval = ctx.saved_tensors
+        X, P, w, r, mu, basis_k, Wc_, alpha, Aval, *inputs = ctx.saved_tensors
+        if torch.is_grad_enabled():      # create_graph=True: differentiate the readable twin instead
+            return _differentiable_backward(ctx, w, r, mu, inputs, dX, dP)
         K = basis_k.shape[0]
         dX = torch.zeros_like(X) if dX is None else dX.clone(memory_format=torch.contiguous_format)
         dP = torch.zeros_like(P) if dP is None else dP
@@ -306,6 +345,25 @@ class _LocallyLinearFilter(torch.autograd.Function):
             g_Wc = torch.bmm(g_logit, P[:, :m2].transpose(1, 2)).sum(0) if ctx.needs_input_grad[6] else None
             g_bc = g_logit.sum((0, 2)) if ctx.needs_input_grad[7] else None
         return dX[0], g_w, g_r, None, g_inp, g_basis, g_Wc, g_bc, None, None, None, None
+
+
+def _differentiable_backward(ctx, w: Tensor, r: Tensor, mu: Tensor | None, inputs: list, dX: Tensor | None,
+                             dP: Tensor | None) -> tuple:
+    """The gradients of every input as a differentiable function of the inputs and of the
+    output gradients: autograd through :func:`packed_reference` (second derivatives exact)."""
+    x0, inp, basis, Wc, bc, ident = inputs
+    args = {1: x0, 2: w, 3: r, 5: inp, 6: basis, 7: Wc, 8: bc}          # position in forward's arguments
+    wanted = [i for i, x in args.items() if x is not None and ctx.needs_input_grad[i - 1]]
+    xs = {i: (x.view_as(x) if i in wanted else x) for i, x in args.items()}
+    X, P = packed_reference(xs[1], xs[2], xs[3], mu, xs[5], xs[6], xs[7], xs[8], ident, ctx.bi, ctx.bj,
+                            ctx.diag_only)
+    outs = [(o, g) for o, g in ((X, dX), (P, dP)) if g is not None]
+    grads = torch.autograd.grad([o for o, _ in outs], [xs[i] for i in wanted], [g for _, g in outs],
+                                create_graph=True, allow_unused=True) if outs and wanted else ()
+    result: list = [None] * 12
+    for i, g in zip(wanted, grads):
+        result[i - 1] = torch.zeros_like(args[i]) if g is None else g
+    return tuple(result)
 
 
 def locally_linear_filter_jit(x0: Tensor, w: Tensor, r: Tensor, mu: Tensor | None, inp: Tensor, basis: Tensor,
