@@ -456,24 +456,18 @@ def show_source(*objs: Any) -> Any:
     return Markdown(f"```python\n{body}\n```")
 
 
-def use_book_figures() -> bool:
+def use_book_figures() -> None:
     """Render this notebook's matplotlib figures at twice the pixel density ("retina" PNGs).
 
     Each inline figure is saved at 2x its ``dpi`` and tagged with its 1x width and height, so a
     figure keeps its size on the page and in JupyterLab but stays sharp on high-resolution
-    screens and when zoomed. Call once, in a chapter's import cell. Outside an IPython kernel
+    screens and when zoomed. Call once, in a chapter's import cell. Outside an IPython shell
     (e.g. plain ``python``) nothing is changed.
-
-    Returns:
-        True if the inline backend was configured, False if there is no IPython shell.
     """
-    try:
-        from IPython import get_ipython
-    except ImportError:   # pragma: no cover - IPython is a pinned requirement
-        return False
+    from IPython import get_ipython
+
     if get_ipython() is None:
-        return False
+        return
     from matplotlib_inline.backend_inline import set_matplotlib_formats
 
     set_matplotlib_formats("retina")
-    return True

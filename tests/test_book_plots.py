@@ -253,7 +253,29 @@ def test_show_source_is_a_python_block_and_rejects_nothing_to_show():
         show_source(len)   # a builtin has no Python source
 
 
-def test_use_book_figures_outside_a_kernel_changes_nothing():
+def test_use_book_figures_doubles_the_pixels_of_inline_figures():
+    """In an IPython shell the PNG of a figure has twice the pixels of its displayed size (the
+    width/height metadata the book and JupyterLab use); outside a shell nothing happens."""
+    import base64
+    import io
+
+    from IPython.core.interactiveshell import InteractiveShell
+    from PIL import Image
+
     from pgm_wm.plotting import use_book_figures
 
-    assert use_book_figures() is False
+    if not InteractiveShell.initialized():
+        use_book_figures()                  # no shell: a no-op
+    shell = InteractiveShell.instance()
+    try:
+        use_book_figures()
+        fig, ax = plt.subplots(figsize=(4, 3), dpi=100)
+        ax.plot([0, 1], [0, 1])
+        data, meta = shell.display_formatter.format(fig)
+        png = data["image/png"]
+        width, height = Image.open(io.BytesIO(png if isinstance(png, bytes) else base64.b64decode(png))).size
+        shown = meta["image/png"]
+        assert abs(width - 2 * shown["width"]) <= 2 and abs(height - 2 * shown["height"]) <= 2
+        plt.close(fig)
+    finally:
+        InteractiveShell.clear_instance()
