@@ -269,3 +269,48 @@ def test_bibliography_page_lists_every_entry_once():
     page = (BUILD / "book" / "references.html").read_text(encoding="utf-8")
     ids = re.findall(r'id="bib-([\w-]+)"', page)
     assert sorted(ids) == sorted(bib_keys())
+
+
+# ----------------------------------------------------------------------------- datasets named in the READMEs
+def notebook_text(number: int) -> str:
+    (path,) = (ROOT / "notebooks").glob(f"{number:02d}_*.ipynb")
+    cells = json.loads(path.read_text(encoding="utf-8"))["cells"]
+    return "\n".join("".join(c["source"]) for c in cells)
+
+
+def readme_chapter_datasets() -> dict[int, set[str]]:
+    """Chapter number -> the dataset names in the Data column of README.md's chapter table."""
+    rows = {}
+    for line in (ROOT / "README.md").read_text(encoding="utf-8").splitlines():
+        m = re.match(r"\|\s*(\d)\. [^|]+\|[^|]+\|[^|]+\|([^|]+)\|\s*$", line)
+        if m:
+            rows[int(m.group(1))] = set(re.findall(r"`(\w+)`", m.group(2)))
+    return rows
+
+
+def test_readme_names_the_datasets_each_chapter_loads():
+    from pgm_wm.datasets import DATASET_NAMES as DATASETS
+
+    rows = readme_chapter_datasets()
+    assert sorted(rows) == [1, 2, 3, 4, 5, 6]
+    for n, names in rows.items():
+        text = notebook_text(n)
+        loaded = set(re.findall(r'load\("(\w+)"', text))
+        assert names <= set(DATASETS), f"chapter {n}: unknown dataset in README: {names - set(DATASETS)}"
+        assert loaded <= names, f"chapter {n} loads {sorted(loaded - names)}, README does not say so"
+        for name in names:
+            assert f'"{name}"' in text or f"`{name}`" in text, f"README: chapter {n} does not use {name}"
+
+
+def test_data_readme_says_which_chapter_uses_each_file():
+    from pgm_wm.datasets import DATASET_NAMES as DATASETS
+
+    rows = readme_chapter_datasets()
+    used = {name: {n for n, names in rows.items() if name in names} for name in DATASETS}
+    table = (ROOT / "data" / "README.md").read_text(encoding="utf-8")
+    for name in DATASETS:
+        m = re.search(rf"^\| `{name}`(?: \(real\))? \| ([^|]+) \|", table, re.M)
+        assert m, f"data/README.md has no row for {name}"
+        stated = {int(c) for c in re.findall(r"^\s*(\d)(?:,\s*(\d))?", m.group(1))[0] if c} \
+            if re.match(r"\s*\d", m.group(1)) else set()
+        assert stated == used[name], f"{name}: data/README.md says chapters {stated}, README.md {used[name]}"
