@@ -314,3 +314,17 @@ def test_data_readme_says_which_chapter_uses_each_file():
         stated = {int(c) for c in re.findall(r"^\s*(\d)(?:,\s*(\d))?", m.group(1))[0] if c} \
             if re.match(r"\s*\d", m.group(1)) else set()
         assert stated == used[name], f"{name}: data/README.md says chapters {stated}, README.md {used[name]}"
+
+
+@pytest.mark.parametrize("number", [1, 2, 3, 4, 5, 6])
+def test_chapter_ends_with_key_takeaways_before_the_exercises(number):
+    (path,) = (ROOT / "notebooks").glob(f"{number:02d}_*.ipynb")
+    cells = [("".join(c["source"]), c["cell_type"]) for c in json.loads(path.read_text(encoding="utf-8"))["cells"]]
+    box = [i for i, (s, t) in enumerate(cells) if t == "markdown" and s.startswith(":::{admonition} Key takeaways")]
+    exercises = [i for i, (s, t) in enumerate(cells) if t == "markdown" and s.lstrip().startswith("## Exercises")]
+    assert len(box) == 1 and len(exercises) == 1
+    assert box[0] < exercises[0]
+    between = [s for s, t in cells[box[0] + 1:exercises[0]]]
+    assert all(s.startswith("<!--") or s.startswith(":::") for s in between), "only takeaways before the exercises"
+    bullets = re.findall(r"^- \*\*", cells[box[0]][0], re.M)
+    assert 3 <= len(bullets) <= 7, f"{len(bullets)} takeaways"
