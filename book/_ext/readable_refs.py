@@ -35,6 +35,8 @@ from sphinx.util import logging
 from sphinx.util.nodes import make_refnode
 
 LOGGER = logging.getLogger(__name__)
+LATEX_SPECIAL = {"&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_", "{": r"\{", "}": r"\}",
+                 "~": r"\textasciitilde{}", "^": r"\textasciicircum{}", "\\": r"\textbackslash{}"}
 REFERENCES_DOC = "book/references"
 
 
@@ -86,6 +88,12 @@ class ReadableReferences(SphinxPostTransform):
                                classes=["std", "std-ref"])
         node.replace_self(make_refnode(self.app.builder, self.env.docname, docname, anchor, content))
 
+    def _replace_latex(self, node: addnodes.pending_xref, command: str) -> None:
+        """LaTeX output: a hyperlink to a target the LaTeX writer names its own way (the
+        bibliography's ``cite.<doc>:<id>`` anchors, the equations' ``equation:<doc>:<label>``)."""
+        text = "".join(LATEX_SPECIAL.get(ch, ch) for ch in node.astext())
+        node.replace_self(nodes.raw("", command.replace("@TEXT@", text), format="latex"))
+
     def _citation(self, node: addnodes.pending_xref, key: str, text: str) -> None:
         labels = bib_labels(self.app)
         if key not in labels:
@@ -95,7 +103,11 @@ class ReadableReferences(SphinxPostTransform):
         if text != labels[key]:
             LOGGER.warning(f"citation link text {text!r} should be the entry's label {labels[key]!r}",
                            location=node, type="pgm_refs")
-        self._replace(node, REFERENCES_DOC, make_id(f"bib-{key}"))
+        anchor = make_id(f"bib-{key}")
+        if self.app.builder.format == "latex":
+            self._replace_latex(node, r"\hyperlink{cite.%s:%s}{@TEXT@}" % (REFERENCES_DOC, anchor))
+        else:
+            self._replace(node, REFERENCES_DOC, anchor)
 
     def _equation(self, node: addnodes.pending_xref, target_doc: str, label: str, text: str,
                   found: tuple[str, Any]) -> None:
@@ -106,7 +118,10 @@ class ReadableReferences(SphinxPostTransform):
         if f"({number})" not in text:
             LOGGER.warning(f"link to equation {label!r} says {text!r}, but that equation is ({number})",
                            location=node, type="pgm_refs")
-        self._replace(node, docname, make_id(f"equation-{label}"))
+        if self.app.builder.format == "latex":
+            self._replace_latex(node, r"\hyperref[\detokenize{equation:%s:%s}]{@TEXT@}" % (docname, label))
+        else:
+            self._replace(node, docname, make_id(f"equation-{label}"))
 
 
 def setup(app: Sphinx) -> dict[str, Any]:
