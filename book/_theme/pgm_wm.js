@@ -75,15 +75,19 @@
 
   function splitIntervals(t) {
     t.querySelectorAll("td.pgm-num").forEach(function (td) {
-      if (td.dataset.pgmSplit || td.children.length) return;
-      var m = (td.textContent || "").trim().match(INTERVAL);
+      if (td.dataset.pgmSplit) return;
+      // the element that holds the text: the cell, or its only child (<p>, <strong>), ...
+      var el = td;
+      while (el.children.length === 1 && el.childNodes.length === 1) el = el.children[0];
+      if (el.children.length) return;
+      var m = (el.textContent || "").trim().match(INTERVAL);
       if (!m) return;
       td.dataset.pgmSplit = "1";
-      td.textContent = m[1];
+      el.textContent = m[1];
       var ci = document.createElement("span");
       ci.className = "pgm-ci";
       ci.textContent = m[2];
-      td.appendChild(ci);
+      el.appendChild(ci);
     });
   }
 
