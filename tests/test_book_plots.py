@@ -122,8 +122,8 @@ def diagram_overlaps(fig, pad: float = 1.0) -> list[str]:
     fig.canvas.draw()
     renderer = fig.canvas.get_renderer()
     ax = fig.axes[0]
-    labels = [(s, b.expanded(1.0, 1.0).shrunk(1.0, 1.0)) for s, b in _label_boxes(fig)]
-    labels = [(s, type(b).from_extents(b.x0 + pad, b.y0 + pad, b.x1 - pad, b.y1 - pad)) for s, b in labels]
+    # each label's box, shrunk by `pad` pixels so that boxes that merely touch do not count
+    labels = [(s, type(b).from_extents(b.x0 + pad, b.y0 + pad, b.x1 - pad, b.y1 - pad)) for s, b in _label_boxes(fig)]
     problems = []
     for i, (s1, b1) in enumerate(labels):
         for s2, b2 in labels[i + 1:]:
@@ -172,13 +172,16 @@ def test_overlap_check_finds_collisions():
 
     fig, ax = plt.subplots(figsize=(6, 3))
     try:
-        ax.set_xlim(0, 10); ax.set_ylim(0, 5); ax.set_title("t")
+        ax.set_xlim(0, 10)
+        ax.set_ylim(0, 5)
+        ax.set_title("t")
         _diagram_box(ax, 2, 2.5, "box")
         _diagram_arrow(ax, (5, 1), (9, 1))
         assert diagram_overlaps(fig) == []
         ax.text(2, 2.5 + 0.3, "sticks out of the box", fontsize=12, ha="left")
         ax.text(7, 1, "on the arrow", ha="center", va="center")
-        ax.text(7, 4, "twin", ha="center"); ax.text(7.1, 4, "twin 2", ha="center")
+        ax.text(7, 4, "twin", ha="center")
+        ax.text(7.1, 4, "twin 2", ha="center")
         found = " | ".join(diagram_overlaps(fig))
         assert "does not fit inside its node" in found or "overlaps a node" in found
         assert "an arrow runs through 'on the arrow'" in found
