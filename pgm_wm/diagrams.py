@@ -7,7 +7,7 @@ Presentation only: no model quantity is computed here except the 1-D Gaussian de
 * :func:`plot_gain_as_weighted_average` — Chapter 1: the Kalman update in 1-D as a
   precision-weighted average of prior and observation;
 * :func:`plot_rkn_cell` — Chapter 3: encoder → update → predict → decoder;
-* :func:`plot_factorized_covariance` — Chapter 3: the σᵘ, σˡ, σˢ blocks of Σ;
+* :func:`plot_factorized_covariance` — Chapter 3: the vᵘ, vˡ, vˢ blocks of Σ;
 * :func:`plot_mts3_graphical_model` — Chapter 6: the two clocks, the β and α sets and the
   prior coupling.
 """
@@ -69,7 +69,7 @@ def plot_rkn_cell(ax: Any | None = None) -> Any:
     """Diagram of one step of the Recurrent Kalman Network (chapter 3).
 
     The encoder turns the raw observation :math:`o_t` into a latent observation
-    :math:`w_t` with variance :math:`\\sigma^{obs}_t`; the factorized Kalman update
+    :math:`w_t` with variance :math:`v^{obs}_t`; the factorized Kalman update
     (Eq. ``rkn-update``) combines it with the prior belief; the decoder maps the posterior
     to a predicted observation with a variance; the locally linear predict step turns the
     posterior into the prior of the next step, which is the recurrence.
@@ -79,28 +79,29 @@ def plot_rkn_cell(ax: Any | None = None) -> Any:
     Returns:
         The matplotlib figure.
     """
-    fig, ax = _diagram_axes(ax, (9.5, 4.2))
+    fig, ax = _diagram_axes(ax, (9.5, 4.6))
     blue, green, grey = "#dbe8f7", "#e2f2dc", "#f2f2f2"
     _diagram_box(ax, 0.0, 0.0, "observation\n$o_t$", w=1.6, fc=grey)
-    _diagram_box(ax, 2.6, 0.0, "encoder\n$(w_t, \\sigma^{obs}_t)$", w=2.0, fc=green)
-    _diagram_box(ax, 5.5, 0.0, "update\n(condition)", w=1.9, fc=blue)
-    _diagram_box(ax, 8.4, 0.0, "decoder\n$(\\hat o_t, \\hat\\sigma_t)$", w=2.0, fc=green)
-    _diagram_box(ax, 5.5, 2.3, "predict (marginalize)\n$A_t$ locally linear, $+Q$", w=3.2, fc=blue)
-    _diagram_box(ax, 5.5, -2.1, "belief  $\\mu^{+}_t$, $(\\sigma^{u+}_t, \\sigma^{l+}_t, \\sigma^{s+}_t)$",
+    _diagram_box(ax, 2.7, 0.0, "encoder\n$(w_t, v^{obs}_t)$", w=2.0, fc=green)
+    _diagram_box(ax, 6.2, 0.0, "update\n(condition)", w=1.9, fc=blue)
+    _diagram_box(ax, 9.5, 0.0, "decoder\n$(\\hat o_t, \\hat\\sigma^2_t)$", w=2.0, fc=green)
+    _diagram_box(ax, 6.2, 2.5, "predict (marginalize)\n$A_t$ locally linear, $+Q$", w=3.2, fc=blue)
+    _diagram_box(ax, 6.2, -2.1, "belief  $\\mu^{+}_t$, $(v^{u+}_t, v^{l+}_t, v^{s+}_t)$",
                  w=4.4, h=0.6, fc="white", fontsize=9)
-    _diagram_arrow(ax, (0.8, 0.0), (1.6, 0.0))
-    _diagram_arrow(ax, (3.6, 0.0), (4.55, 0.0), "$w_t, \\sigma^{obs}_t$")
-    _diagram_arrow(ax, (6.45, 0.0), (7.4, 0.0), "")
-    _diagram_arrow(ax, (5.5, -0.4), (5.5, -1.8))
-    _diagram_arrow(ax, (6.3, 0.4), (6.3, 1.9), "", color="k")
-    ax.text(6.4, 1.15, "posterior $z^{+}_t$", fontsize=9, ha="left", va="center")
-    _diagram_arrow(ax, (3.9, 2.3), (4.7, 0.4), "", rad=0.35, color="#b03030", ls="--")
-    ax.text(3.35, 1.55, "prior $z^{-}_{t+1}$\n(used at step $t+1$)", fontsize=9, ha="center",
+    _diagram_arrow(ax, (0.8, 0.0), (1.7, 0.0))
+    _diagram_arrow(ax, (3.7, 0.0), (5.25, 0.0), "$w_t, v^{obs}_t$", text_offset=(0.0, 0.08))
+    _diagram_arrow(ax, (7.15, 0.0), (8.5, 0.0))
+    _diagram_arrow(ax, (6.2, -0.4), (6.2, -1.8))
+    # the loop: posterior up into the predict step (right), prior of the next step back (left)
+    _diagram_arrow(ax, (6.75, 0.4), (6.75, 2.1))
+    ax.text(6.9, 1.25, "posterior $z^{+}_t$", fontsize=9, ha="left", va="center")
+    _diagram_arrow(ax, (5.65, 2.1), (5.65, 0.4), color="#b03030", ls="--")
+    ax.text(5.5, 1.25, "prior $z^{-}_{t+1}$\n(used at step $t+1$)", fontsize=9, ha="right",
             va="center", color="#b03030")
-    ax.text(9.4, 0.75, "loss: NLL of $o_{t}$\nunder $\\mathcal{N}(\\hat o_t, \\hat\\sigma_t)$",
-            fontsize=8.5, ha="center", va="bottom", color="0.3")
-    ax.text(5.5, 3.05, "the only recurrence: the belief", fontsize=9, ha="center", color="0.3")
-    _finish_diagram(ax, (-1.0, 10.6), (-2.7, 3.4),
+    ax.text(9.5, -0.55, "loss: NLL of $o_{t}$\nunder $\\mathcal{N}(\\hat o_t, \\hat\\sigma^2_t)$",
+            fontsize=8.5, ha="center", va="top", color="0.3")
+    ax.text(6.2, 3.2, "the only recurrence: the belief", fontsize=9, ha="center", color="0.3")
+    _finish_diagram(ax, (-1.0, 10.8), (-2.6, 3.6),
                     "One RKN step: encoder $\\to$ update $\\to$ decoder, and predict to the next step")
     return fig
 
@@ -109,7 +110,7 @@ def plot_factorized_covariance(m: int = 4, ax: Any | None = None) -> Any:
     """Picture of the factorized covariance of chapter 3 (Eq. ``rkn-cov``).
 
     Draws the :math:`2m \\times 2m` matrix
-    :math:`\\Sigma = [[\\diag(\\sigma^u), \\diag(\\sigma^s)], [\\diag(\\sigma^s), \\diag(\\sigma^l)]]`
+    :math:`\\Sigma = [[\\diag(v^u), \\diag(v^s)], [\\diag(v^s), \\diag(v^l)]]`
     with the entries each of the three vectors occupies coloured and every entry that is
     always zero left blank: only :math:`3m` numbers are stored instead of
     :math:`m(2m+1)`.
@@ -137,18 +138,18 @@ def plot_factorized_covariance(m: int = 4, ax: Any | None = None) -> Any:
             ax.add_patch(Rectangle((j, n - 1 - i), 1, 1, fc=colors[kind] if kind else "white",
                                    ec="0.75", lw=0.8, alpha=0.85 if kind else 1.0))
             if kind and m <= 6:
-                ax.text(j + 0.5, n - 0.5 - i, f"$\\sigma^{{{kind}}}_{{{(i % m) + 1}}}$", ha="center",
+                ax.text(j + 0.5, n - 0.5 - i, f"$v^{{{kind}}}_{{{(i % m) + 1}}}$", ha="center",
                         va="center", fontsize=9 if m <= 4 else 7, color="white")
     ax.plot([m, m], [0, n], color="k", lw=1.5)
     ax.plot([0, n], [m, m], color="k", lw=1.5)
     ax.add_patch(Rectangle((0, 0), n, n, fill=False, ec="k", lw=1.5))
-    labels = [("$\\operatorname{diag}(\\sigma^u)$", m / 2, n + 0.35), ("$\\operatorname{diag}(\\sigma^s)$", m + m / 2, n + 0.35)]
+    labels = [("$\\operatorname{diag}(v^u)$", m / 2, n + 0.35), ("$\\operatorname{diag}(v^s)$", m + m / 2, n + 0.35)]
     for text, x, y in labels:
         ax.text(x, y, text, ha="center", va="bottom", fontsize=10)
     ax.text(-0.3, m + m / 2, "upper $z^u$", rotation=90, ha="right", va="center", fontsize=10)
     ax.text(-0.3, m / 2, "lower $z^l$", rotation=90, ha="right", va="center", fontsize=10)
-    ax.text(m / 2, -0.35, "$\\operatorname{diag}(\\sigma^s)$", ha="center", va="top", fontsize=10)
-    ax.text(m + m / 2, -0.35, "$\\operatorname{diag}(\\sigma^l)$", ha="center", va="top", fontsize=10)
+    ax.text(m / 2, -0.35, "$\\operatorname{diag}(v^s)$", ha="center", va="top", fontsize=10)
+    ax.text(m + m / 2, -0.35, "$\\operatorname{diag}(v^l)$", ha="center", va="top", fontsize=10)
     _finish_diagram(ax, (-1.2, n + 0.3), (-1.2, n + 1.0),
                     f"$\\Sigma$ of a factorized belief, $m={m}$: {3 * m} stored numbers instead of {m * (2 * m + 1)}")
     return fig
@@ -175,7 +176,7 @@ def plot_mts3_graphical_model(steps: int = 3, ax: Any | None = None) -> Any:
         raise ValueError(f"steps: must be an integer from 2 to 5, got {steps!r}")
     from matplotlib.patches import Circle, Rectangle
 
-    fig, ax = _diagram_axes(ax, (11.0, 6.6))
+    fig, ax = _diagram_axes(ax, (11.0, 6.4))
     r = 0.36
     dx = 1.35
     width = steps * dx + 0.9
@@ -198,7 +199,10 @@ def plot_mts3_graphical_model(steps: int = 3, ax: Any | None = None) -> Any:
         pb = (xb - r * (xb - xa) / d, yb - r * (yb - ya) / d)
         _diagram_arrow(ax, pa, pb, color=color, ls=ls, rad=rad)
 
-    y_alpha, y_l, y_beta, y_z, y_o, y_a = 5.2, 3.9, 5.2, 1.6, 0.25, 2.9
+    # rows: abstract action/observation, task, fast states, actions (between the state columns,
+    # below the fast chain, so that no edge from the task crosses them), observations
+    y_alpha, y_l, y_beta, y_z, y_a, y_o = 5.4, 4.1, 5.4, 1.9, 0.95, 0.0
+    box_lo, box_hi = -0.75, 2.75
     for k, name in enumerate(("k", "k+1")):
         x0 = k * (width + 0.8)
         xl = x0 + width / 2
@@ -209,8 +213,8 @@ def plot_mts3_graphical_model(steps: int = 3, ax: Any | None = None) -> Any:
                 color="0.35")
         edge(f"alpha{k}", f"l{k}")
         edge(f"l{k}", f"beta{k}")
-        ax.add_patch(Rectangle((x0, -0.35), width, 3.75, fill=False, ls="--", ec="0.55", lw=1.0))
-        ax.text(x0 + 0.08, 3.45, f"window {name}: $H$ fast steps", fontsize=8.5, color="0.35",
+        ax.add_patch(Rectangle((x0, box_lo), width, box_hi - box_lo, fill=False, ls="--", ec="0.55", lw=1.0))
+        ax.text(x0 + 0.08, box_lo + 0.06, f"window {name}: $H$ fast steps", fontsize=8.5, color="0.35",
                 ha="left", va="bottom")
         for t in range(steps):
             xt = x0 + 0.75 + t * dx
@@ -229,11 +233,11 @@ def plot_mts3_graphical_model(steps: int = 3, ax: Any | None = None) -> Any:
             ha="center", va="bottom", fontsize=9)
     ax.text((nodes[f"z0{steps - 1}"][0] + nodes["z10"][0]) / 2, y_z + 0.12, "fast clock $t$",
             ha="center", va="bottom", fontsize=9)
-    ax.text(2 * width + 0.8, -0.9,
+    ax.text(2 * width + 0.8, box_lo - 0.2,
             "dashed red: the fast steps of window $k$ use the slow prior $p(l_k\\mid\\beta_{1:k-1},\\alpha_{1:k})$;\n"
             "$\\beta_{k,1:H}$ then updates $l_k$ as a set, and the posterior is predicted to $l_{k+1}$",
             ha="right", va="top", fontsize=8.5, color="0.25")
-    _finish_diagram(ax, (-0.3, 2 * width + 1.1), (-1.8, 5.9),
+    _finish_diagram(ax, (-0.3, 2 * width + 1.1), (-2.1, 6.1),
                     "MTS3: a slow task SSM (top) that reconfigures a fast SSM (bottom), window by window")
     return fig
 

@@ -386,6 +386,93 @@ def plot_filter_1d(
     ax.grid(alpha=0.3)
 
 
+# ----------------------------------------------------------------------------- Book-wide helpers
+__all__ += ["source_without_docstrings", "show_source", "use_book_figures"]
+
+
+def source_without_docstrings(obj: Any) -> str:
+    """The source code of a function or class with every docstring removed.
+
+    Comments, blank lines and the code itself are kept exactly as written; only the string
+    literals that are the first statement of the object (and of each function or class nested
+    in it) are dropped, so the printed code is what runs and nothing else. A body that consisted
+    of a docstring alone becomes ``...``.
+
+    Args:
+        obj: a function, method or class whose source ``inspect.getsource`` can find.
+    Returns:
+        The dedented source text, ending with a newline.
+    """
+    import ast
+    import inspect
+    import textwrap
+
+    try:
+        source = textwrap.dedent(inspect.getsource(obj))
+    except (TypeError, OSError) as exc:
+        raise ValueError(f"obj: no source code available for {obj!r} ({exc})") from None
+    lines = source.splitlines(keepends=True)
+    drop: set[int] = set()   # 0-based line numbers to remove
+    stub: dict[int, str] = {}  # a line to put in place of a docstring that was the whole body
+    for node in ast.walk(ast.parse(source)):
+        if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            continue
+        first = node.body[0]
+        if not (isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant)
+                and isinstance(first.value.value, str)):
+            continue
+        start, end = first.lineno - 1, first.end_lineno   # the docstring's lines [start, end)
+        head = lines[start][: first.col_offset]
+        if lines[start][: first.col_offset].strip() or lines[end - 1][first.end_col_offset:].strip():
+            continue   # the docstring shares a line with other code; leave it in place
+        drop.update(range(start, end))
+        if len(node.body) == 1:
+            stub[start] = head + "...\n"
+    out = []
+    for i, line in enumerate(lines):
+        if i in stub:
+            out.append(stub[i])
+        elif i not in drop:
+            out.append(line)
+    text = "".join(out)
+    return text if text.endswith("\n") else text + "\n"
+
+
+def show_source(*objs: Any) -> Any:
+    """Display the source of functions or classes, without their docstrings, as a highlighted
+    Python block (an ``IPython.display.Markdown`` object: the book and JupyterLab render it as
+    code). Used where the package's code *is* the lesson, e.g. the Kalman update of chapter 1.
+
+    Args:
+        objs: one or more functions or classes (see :func:`source_without_docstrings`).
+    Returns:
+        The ``Markdown`` object (shown when it is a cell's last expression).
+    """
+    from IPython.display import Markdown
+
+    if not objs:
+        raise ValueError("objs: give at least one function or class")
+    body = "\n\n".join(source_without_docstrings(obj).rstrip("\n") for obj in objs)
+    return Markdown(f"```python\n{body}\n```")
+
+
+def use_book_figures() -> None:
+    """Render this notebook's matplotlib figures at twice the pixel density ("retina" PNGs).
+
+    Each inline figure is saved at 2x its ``dpi`` and tagged with its 1x width and height, so a
+    figure keeps its size on the page and in JupyterLab but stays sharp on high-resolution
+    screens and when zoomed. Call once, in a chapter's import cell. Outside an IPython shell
+    (e.g. plain ``python``) nothing is changed.
+    """
+    from IPython import get_ipython
+
+    if get_ipython() is None:
+        return
+    from matplotlib_inline.backend_inline import set_matplotlib_formats
+
+    set_matplotlib_formats("retina")
+
+
 __all__ += ["best_so_far", "plot_learning_curves"]
 
 

@@ -42,12 +42,12 @@ pre {{ font-family: monospace; font-size: 14px; padding: 4px; margin: 0; }}
 def test_checker_detects_overflow(tmp_path):
     wide = tmp_path / "wide"
     narrow = tmp_path / "narrow"
-    for folder, n_chars, n_cells in ((wide, 120, 12), (narrow, 20, 2)):
+    for folder, n_chars, n_cells, cell in ((wide, 120, 12, "column_{}_with_a_long_name"), (narrow, 20, 2, "c{}")):
         folder.mkdir()
         (folder / "index.html").write_text(PAGE.format(
             code="x = 1\n" + "y" * n_chars + "\nz = 2",
             wrapped="w " * 200,                                  # wraps: never an overflow
-            cells="".join(f"<td>column_{i}_with_a_long_name</td>" for i in range(n_cells))),
+            cells="".join(f"<td>{cell.format(i)}</td>" for i in range(n_cells))),
             encoding="utf-8")
     (wide_result,) = check_overflow.run(wide, [800])
     (narrow_result,) = check_overflow.run(narrow, [800])

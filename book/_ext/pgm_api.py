@@ -1,25 +1,33 @@
-"""The ``pgm-wm-api`` directive: an API reference for every public module of ``pgm_wm``.
+"""The API reference: one page per public module of ``pgm_wm`` and a short index page.
 
-The module list is not typed into the page: the directive walks the installed package
-(``pkgutil.walk_packages``) when the book is built, so a new module appears in the
-reference as soon as it exists. Private modules (a name starting with ``_``) and
-``__main__`` are skipped. For each module it emits a section with an ``automodule``
-(autodoc, members defined in that module only, so re-exports are documented once, where
-they are defined) after an ``autosummary`` table of all modules. ``sphinx.ext.viewcode``
-adds the "[source]" links. Everything is read from the local checkout; nothing is fetched.
+The module list is not typed anywhere: when the build starts (``config-inited``) this
+extension walks the installed package (``pkgutil.walk_packages``) and writes one page per
+public module, ``book/api/<module>.rst`` (an ``automodule`` of that module: members defined
+in it only, so re-exports are documented once, where they are defined). Pages of modules that
+no longer exist are deleted, and a page is only rewritten when its text changes. The folder is
+generated (git-ignored); ``_toc.yml`` lists it with a glob under the index page
+``book/api.rst``. Private modules (a name starting with ``_``) and ``__main__`` are skipped.
+
+The index page uses the ``pgm-wm-api`` directive: a table of all modules with the first line
+of each module's docstring, linked to its page. ``sphinx.ext.viewcode`` adds the "[source]"
+links. Everything is read from the local checkout; nothing is fetched.
 """
 
 from __future__ import annotations
 
 import importlib
 import pkgutil
+from pathlib import Path
 from typing import Any
 
 from docutils import nodes
 from docutils.statemachine import StringList
 from sphinx.application import Sphinx
+from sphinx.config import Config
 from sphinx.util.docutils import SphinxDirective
 from sphinx.util.nodes import nested_parse_with_titles
+
+API_DIR = "book/api"
 
 
 def public_modules(package: str = "pgm_wm") -> list[str]:
@@ -34,24 +42,48 @@ def public_modules(package: str = "pgm_wm") -> list[str]:
     return sorted(names)
 
 
+def module_page(name: str) -> str:
+    """The reST source of one module's page."""
+    return "\n".join([name, "=" * len(name), "",
+                      f".. automodule:: {name}",
+                      "   :members:",
+                      "   :show-inheritance:",
+                      "   :ignore-module-all:",
+                      "   :member-order: bysource",
+                      ""])
+
+
+def write_module_pages(srcdir: Path, package: str = "pgm_wm") -> list[Path]:
+    """Create or update ``book/api/<module>.rst`` for every public module; remove stale ones."""
+    folder = Path(srcdir) / API_DIR
+    folder.mkdir(parents=True, exist_ok=True)
+    pages = []
+    for name in public_modules(package):
+        page = folder / f"{name}.rst"
+        text = module_page(name)
+        if not page.is_file() or page.read_text(encoding="utf-8") != text:
+            page.write_text(text, encoding="utf-8")
+        pages.append(page)
+    for old in folder.glob("*.rst"):
+        if old not in pages:
+            old.unlink()
+    return pages
+
+
+def _on_config_inited(app: Sphinx, config: Config) -> None:
+    write_module_pages(Path(app.srcdir))
+
+
 class PgmWmApi(SphinxDirective):
+    """A table of every public module (first docstring line) with links to the module pages."""
+
     has_content = False
     optional_arguments = 1
 
     def run(self) -> list[nodes.Node]:
         package = self.arguments[0] if self.arguments else "pgm_wm"
         modules = public_modules(package)
-        lines = [".. autosummary::", ""]
-        lines += [f"   {name}" for name in modules]
-        lines.append("")
-        for name in modules:
-            lines += [name, "-" * len(name), "",
-                      f".. automodule:: {name}",
-                      "   :members:",
-                      "   :show-inheritance:",
-                      "   :ignore-module-all:",
-                      "   :member-order: bysource",
-                      ""]
+        lines = [".. autosummary::", ""] + [f"   {name}" for name in modules] + [""]
         container = nodes.section()
         container.document = self.state.document
         nested_parse_with_titles(self.state, StringList(lines, source="pgm-wm-api"), container)
@@ -61,5 +93,6 @@ class PgmWmApi(SphinxDirective):
 
 
 def setup(app: Sphinx) -> dict[str, Any]:
+    app.connect("config-inited", _on_config_inited)
     app.add_directive("pgm-wm-api", PgmWmApi)
-    return {"version": "1.0", "parallel_read_safe": True, "parallel_write_safe": True}
+    return {"version": "1.1", "parallel_read_safe": True, "parallel_write_safe": True}

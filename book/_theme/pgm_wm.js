@@ -3,8 +3,10 @@
  * After MathJax has typeset the page (and again after every resize):
  *  - a display equation wider than its box is shrunk to fit, down to 55 % of its size;
  *    one that is still too wide scrolls sideways and gets a visible hint;
- *  - every table, and every printed output, that is wider than its box is put in a box
- *    that scrolls sideways and shows a hint ("<- scroll sideways ... ->").
+ *  - numbers in table cells are not broken across lines; a table too wide for its box first
+ *    puts the intervals of "value [low, high]" cells on a second line;
+ *  - every table, and every code block or printed output, that is still wider than its box
+ *    scrolls sideways and shows a hint ("<- scroll sideways ... ->").
  * scripts/check_overflow.py waits for document.body.dataset.pgmFitted === "1".
  */
 (function () {
@@ -57,7 +59,40 @@
     return null;
   }
 
+  /* Numbers in table cells are never broken across lines: a cell without words (a number,
+     "0.093 [0.088, 0.099]", "**1.2**") keeps its line. If a table is then wider than its box,
+     each "value [low, high]" cell puts its interval on a second line, in smaller type; only a
+     table that still does not fit scrolls sideways (with the hint). */
+  var NUMERIC = /^[^A-Za-z]*$|^[\s\d.,\[\]()+\-\u2212\u00b1\u00d7%eE*]+$/;
+  var INTERVAL = /^(\S+)\s+(\[[^\]]+\])$/;
+
+  function keepNumbersTogether(t) {
+    t.querySelectorAll("td").forEach(function (td) {
+      var text = (td.textContent || "").trim();
+      if (text && NUMERIC.test(text)) td.classList.add("pgm-num");
+    });
+  }
+
+  function splitIntervals(t) {
+    t.querySelectorAll("td.pgm-num").forEach(function (td) {
+      if (td.dataset.pgmSplit) return;
+      // the element that holds the text: the cell, or its only child (<p>, <strong>), ...
+      var el = td;
+      while (el.children.length === 1 && el.childNodes.length === 1) el = el.children[0];
+      if (el.children.length) return;
+      var m = (el.textContent || "").trim().match(INTERVAL);
+      if (!m) return;
+      td.dataset.pgmSplit = "1";
+      el.textContent = m[1];
+      var ci = document.createElement("span");
+      ci.className = "pgm-ci";
+      ci.textContent = m[2];
+      el.appendChild(ci);
+    });
+  }
+
   function fitTables(root) {
+    root.querySelectorAll("table").forEach(function (t) { keepNumbersTogether(t); });
     root.querySelectorAll("table").forEach(function (t) {
       var box = scrollBox(t);
       if (!box || !root.contains(box)) {
@@ -67,6 +102,7 @@
         t.parentNode.insertBefore(box, t);
         box.appendChild(t);
       }
+      if (box.scrollWidth > box.clientWidth + 1) splitIntervals(t);
       hint(box, box.scrollWidth > box.clientWidth + 1);
     });
   }
