@@ -94,7 +94,8 @@ def ch4_experiment(dataset: str = "memory_arm", oracle: bool = True) -> Experime
         "FFNN": ModelSpec(lambda s: build_baseline("ffnn", *_dims(s), **_readout(s))),
     }
     protocol = Protocol(context_len=50, horizon=50, horizons=(1, 5, 10, 25, 50), eval_stride=50,
-                        valid_stride=100, batch_size=32, keep_prob=0.25, open_loop_prob=0.5, valid_every=25)
+                        valid_stride=100, batch_size=32, keep_prob=0.25, open_loop_prob=0.5, valid_every=25,
+                        lr_patience=10)
     models.update(_reference_models(protocol))
     if oracle:
         models.update(_oracle_models(dataset, ("true",) if dataset in ("memory_arm", "hysteresis_arm") else
@@ -209,7 +210,7 @@ def ch5_experiment(dataset: str = "hidden_payload_arm", window: int = 25, observ
     }
     protocol = Protocol(context_len=H + c, horizon=H - c, horizons=(1, 5, 10, H - c), eval_stride=2 * H,
                         valid_stride=2 * H, batch_size=64, keep_prob=0.5, open_loop_prob=0.5, lr=5e-3,
-                        score_dims=(0, 1), valid_every=50)
+                        score_dims=(0, 1), valid_every=50, lr_patience=10)
     models.update(_reference_models(protocol))
     models.update(_oracle_models(dataset))
     return Experiment(f"ch5_{dataset}", f"Chapter 5, open-loop prediction in the second of two task windows on {dataset}",
@@ -248,7 +249,7 @@ def ch6_experiment(dataset: str = "slow_payload_arm", window: int = 25) -> Exper
     }
     protocol = Protocol(context_len=2 * window, horizon=200, horizons=(25, 50, 100, 200), eval_stride=250,
                         valid_stride=500, batch_size=48, keep_prob=0.85, open_loop_prob=0.5,
-                        mask_window=window, max_window_drop=0.75, lr=1e-2, valid_every=20)
+                        mask_window=window, max_window_drop=0.75, lr=1e-2, valid_every=20, lr_patience=10)
     models.update(_reference_models(protocol))
     models.update(_oracle_models(dataset))
     return Experiment(f"ch6_{dataset}", f"Chapter 6, long-horizon open-loop prediction on {dataset}",

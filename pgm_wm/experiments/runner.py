@@ -336,7 +336,7 @@ def train_model(exp: Experiment, name: str, seed: int, budget_s: float,
         raise RuntimeError("train: the learning curve and fit's history disagree (a custom trainer must pass "
                            "valid_fn to fit)")
     curve = [{"step": c["step"], "epoch": c["epoch"], "cpu_s": round(t["cpu_s"], 3), "valid": t["valid"],
-              "train": c["train"], **({"test": t["test"]} if "test" in t else {})}
+              "train": c["train"], "lr": c.get("lr"), **({"test": t["test"]} if "test" in t else {})}
              for c, t in zip(hist.curve, tracker.calls)]
     stat = improvement_over_last_doubling(curve, budget_s)
     return model.eval(), {
