@@ -312,7 +312,7 @@ class FitHistory:
         valid_steps: optimizer steps done when it was computed.
         curve: the learning curve, one dict per validation: ``{"step", "epoch", "cpu_s", "wall_s",
             "valid", "train"}``; ``cpu_s`` / ``wall_s`` are CPU (``time.process_time``) and wall
-            seconds since :func:`fit` was entered (validations and setup included), ``train`` the
+            seconds from the first batch (validations included), ``train`` the
             mean training loss of the batches since the previous entry. Without ``valid_fn`` there
             is one entry per epoch with ``valid`` NaN.
 
@@ -437,8 +437,9 @@ def fit(
         batch_size, lr, weight_decay: the usual; ``clip_norm`` clips the global gradient norm
             (``None``: no clipping; the norm is still checked for NaN/inf).
         epochs: an epoch cap; ``budget_s``: a compute budget in **CPU seconds**
-            (``time.process_time`` since :func:`fit` was entered, checked after every batch; the
-            epoch in progress ends there). At least one of the two is required. An epoch cap
+            (``time.process_time`` from the first batch on, validations included; the setup
+            before it is ``FitHistory.setup_cpu_s``; checked after every batch, the epoch in
+            progress ends there). At least one of the two is required. An epoch cap
             alone is reproducible; a budget is not across machines.
         seed: seeds the shuffling, the crops and the generator passed to ``loss_fn``.
         valid_fn: called under ``torch.no_grad()`` after every epoch (or every ``valid_every``
@@ -560,9 +561,10 @@ def fit(
     n_batches = max_batches if sampler else (n + batch_size - 1) // batch_size
     if max_batches is not None:
         n_batches = min(n_batches, max_batches)
-    # CPU seconds of this run and of the runs a checkpoint resumed
-    cpu0, wall0 = cpu_enter - used_before, wall_enter
+    # CPU seconds of this run and of the runs a checkpoint resumed, counted from the end of the
+    # setup (argument checks, optimizer, checkpoint loading: setup_cpu_s) on
     hist.setup_cpu_s = time.process_time() - cpu_enter
+    cpu0, wall0 = time.process_time() - used_before, wall_enter
     by_epochs = epochs is not None
     total = (epochs * n_batches) if by_epochs else round(float(budget_s), 1)
     bar = tqdm(total=total, initial=min(epoch * n_batches, total) if by_epochs else 0, desc=desc,

@@ -300,3 +300,18 @@ def test_best_so_far_and_the_learning_curve_figure():
     assert labels[0] == "gru" and sum("(reference)" in s for s in labels) == 3
     assert len(ax.collections) == 1                       # one band (the trained model over its seeds)
     plt.close(fig)
+
+
+def test_stored_models_load_back_to_the_same_predictions(tmp_path):
+    from pgm_wm.experiments.runner import load_trained, model_path, test_windows
+
+    exp = _tiny_gru_experiment()
+    res = run_experiment(exp, [3], 1e6, jobs=1, log=lambda s: None, max_steps=4, save_models=tmp_path)
+    assert model_path(tmp_path, "tiny", "gru", 3).is_file()
+    assert not model_path(tmp_path, "tiny", "arx", 3).exists()          # reference rows are not stored
+    model = load_trained(exp, "gru", 3, tmp_path)
+    again, _ = score(model, SPLITS, exp.protocol)
+    np.testing.assert_allclose(again, res["models"]["gru"]["sq_err"][0], rtol=1e-5)
+    assert test_windows(SPLITS, exp.protocol)[0].shape[0] == again.shape[1]
+    with pytest.raises(ValueError, match="^name"):
+        load_trained(exp, "gru", 4, tmp_path)

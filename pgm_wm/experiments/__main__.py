@@ -67,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed-start", type=int, default=0,
                         help="first seed (default 0): --seeds 3 --seed-start 5 runs seeds 5, 6, 7 (merge the parts "
                              "with `python -m pgm_wm.experiments merge`)")
+    parser.add_argument("--save-models", default=None,
+                        help="folder where every trained model's parameters are stored (runner.model_path)")
     parser.add_argument("--max-steps", type=_positive_int, default=None,
                         help="also stop every model after this many optimizer steps (equal-steps comparison)")
     parser.add_argument("--budget", type=_budget, default=60.0, help="CPU seconds of training per model and seed")
@@ -94,7 +96,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.seed_start < 0:
         parser.error("argument --seed-start: must be >= 0")
     seeds = list(range(args.seed_start, args.seed_start + args.seeds))
-    res = run_experiment(exp, seeds, args.budget, out, jobs=args.jobs, models=args.models, max_steps=args.max_steps)
+    res = run_experiment(exp, seeds, args.budget, out, jobs=args.jobs, models=args.models, max_steps=args.max_steps,
+                         save_models=args.save_models)
     print(summary_table(res))
     print(training_table(res))
     if len(res["models"]) >= 2:

@@ -22,8 +22,10 @@ what :mod:`pgm_wm.experiments.stats` resamples.
 from __future__ import annotations
 
 import math
+import os
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
 import numpy as np
@@ -38,7 +40,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from ..datasets import SequenceData
 
 __all__ = ["Protocol", "Splits", "ModelSpec", "Experiment", "LearningCurve", "improvement_over_last_doubling",
-           "CONVERGENCE_TOL", "train_model", "validation_rmse", "test_windows", "score", "score_oracle",
+           "CONVERGENCE_TOL", "model_path", "load_trained", "train_model", "validation_rmse", "test_windows", "score", "score_oracle",
            "run_experiment"]
 
 
@@ -405,9 +407,28 @@ def score(model: nn.Module, splits: Splits, protocol: Protocol) -> tuple[np.ndar
 _FORKED_EXPERIMENT: Experiment | None = None  # set before forking workers (lambdas do not pickle)
 
 
-def _run_one(task: tuple[str, int, float, int | None], exp: Experiment | None = None
+def model_path(folder: str | os.PathLike, experiment: str, name: str, seed: int) -> Path:
+    """Where :func:`run_experiment` stores a trained model's parameters: ``folder/experiment/<name>
+    seed <seed>.pt`` (the model name with characters that do not belong in a file name replaced)."""
+    safe = "".join(c if c.isalnum() or c in "-_.()" else "_" for c in name)
+    return Path(folder) / experiment / f"{safe}__seed{seed}.pt"
+
+
+def load_trained(exp: Experiment, name: str, seed: int, folder: str | os.PathLike) -> nn.Module:
+    """Model ``name`` of ``exp`` with the parameters a study stored for ``seed`` (built by its
+    :class:`ModelSpec` exactly as in the study, then the state dict loaded; eval mode)."""
+    path = model_path(folder, exp.name, name, seed)
+    if not path.is_file():
+        raise ValueError(f"name: no stored parameters for {name!r}, seed {seed} at {path}")
+    set_seed(seed)
+    model = exp.models[name].build(exp.load())
+    model.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+    return model.eval()
+
+
+def _run_one(task: tuple[str, int, float, int | None, str | None], exp: Experiment | None = None
              ) -> tuple[str, int, np.ndarray, np.ndarray | None, dict]:
-    name, seed, budget_s, max_steps = task
+    name, seed, budget_s, max_steps, save_dir = task
     exp = _FORKED_EXPERIMENT if exp is None else exp
     assert exp is not None
     torch.set_num_threads(1)
@@ -416,6 +437,10 @@ def _run_one(task: tuple[str, int, float, int | None], exp: Experiment | None = 
             "oracle": True, "best_valid": oracle_validation_rmse(exp.models[name], exp.load(), exp.protocol)}
     model, info = train_model(exp, name, seed, budget_s, max_steps=max_steps)
     sq, nll = score(model, exp.load(), exp.protocol)
+    if save_dir is not None and exp.models[name].trained:
+        path = model_path(save_dir, exp.name, name, seed)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        torch.save(model.state_dict(), path)
     if exp.models[name].probe is not None:
         info["probe"] = exp.models[name].probe(model, exp.load(), exp.protocol, seed)
     return name, seed, sq, nll, info
@@ -433,12 +458,14 @@ def _log_line(name: str, seed: int, info: Mapping[str, Any]) -> str:
 
 def run_experiment(exp: Experiment, seeds: Sequence[int], budget_s: float, out_path: str | None = None,
                    jobs: int = 1, models: Sequence[str] | None = None, log: Callable[[str], None] = print,
-                   max_steps: int | None = None) -> dict[str, Any]:
+                   max_steps: int | None = None, save_models: str | os.PathLike | None = None) -> dict[str, Any]:
     """Train and score every model for every seed; return (and optionally save) the results.
 
     ``jobs > 1`` runs (model, seed) pairs in that many processes; each gets ``budget_s`` CPU
     seconds and one thread either way. ``max_steps`` also caps every model's optimizer steps
-    (the equal-steps comparison: give a budget large enough that no model runs out of it)."""
+    (the equal-steps comparison: give a budget large enough that no model runs out of it).
+    ``save_models``: a folder where every trained model's parameters are stored
+    (:func:`model_path`; read them back with :func:`load_trained`)."""
     if len(seeds) < 1:
         raise ValueError("seeds: need at least one seed")
     if len(set(seeds)) != len(seeds) or any(not isinstance(s, int) or s < 0 for s in seeds):
@@ -457,7 +484,9 @@ def run_experiment(exp: Experiment, seeds: Sequence[int], budget_s: float, out_p
             raise ValueError(f"models: unknown model {n!r} (known: {', '.join(exp.models)})")
     if out_path is not None:  # before any training: a path that cannot be written fails now
         check_output_path(out_path, force=True)
-    tasks = [(n, s, budget_s, max_steps) for n in names for s in (seeds if exp.models[n].trained else seeds[:1])]
+    save_dir = None if save_models is None else str(save_models)
+    tasks = [(n, s, budget_s, max_steps, save_dir) for n in names
+             for s in (seeds if exp.models[n].trained else seeds[:1])]
     t0 = time.perf_counter()
     # commit, date and machine are recorded when the run starts; the wall time when it ends
     started = provenance(budget_cpu_s=budget_s, seeds=list(seeds), jobs=jobs, max_steps=max_steps,
