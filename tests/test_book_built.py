@@ -76,8 +76,8 @@ def equation_numbers(page) -> set[str]:
 
 # ----------------------------------------------------------------------------- numbering
 @built
-def test_there_are_six_chapters():
-    assert [chapter_number(p) for p in CHAPTERS] == [1, 2, 3, 4, 5, 6]
+def test_there_are_seven_chapters():
+    assert [chapter_number(p) for p in CHAPTERS] == [1, 2, 3, 4, 5, 6, 7]
 
 
 @built
@@ -293,7 +293,7 @@ def test_readme_names_the_datasets_each_chapter_loads():
     from pgm_wm.datasets import DATASET_NAMES as DATASETS
 
     rows = readme_chapter_datasets()
-    assert sorted(rows) == [1, 2, 3, 4, 5, 6]
+    assert sorted(rows) == [1, 2, 3, 4, 5, 6, 7]
     for n, names in rows.items():
         text = notebook_text(n)
         loaded = set(re.findall(r'load\("(\w+)"', text))
@@ -317,15 +317,20 @@ def test_data_readme_says_which_chapter_uses_each_file():
         assert stated == used[name], f"{name}: data/README.md says chapters {stated}, README.md {used[name]}"
 
 
-@pytest.mark.parametrize("number", [1, 2, 3, 4, 5, 6])
+@pytest.mark.parametrize("number", [1, 2, 3, 4, 5, 6, 7])
 def test_chapter_ends_with_key_takeaways_before_the_exercises(number):
+    """One "Key takeaways" box on the method, optionally followed by one "Key takeaways on the
+    results" box (the chapters with a study), and nothing else between them and the exercises."""
     (path,) = (ROOT / "notebooks").glob(f"{number:02d}_*.ipynb")
     cells = [("".join(c["source"]), c["cell_type"]) for c in json.loads(path.read_text(encoding="utf-8"))["cells"]]
-    box = [i for i, (s, t) in enumerate(cells) if t == "markdown" and s.startswith(":::{admonition} Key takeaways")]
+    boxes = [i for i, (s, t) in enumerate(cells) if t == "markdown" and s.startswith(":::{admonition} Key takeaways")]
+    results = [i for i in boxes if cells[i][0].startswith(":::{admonition} Key takeaways on the results")]
+    box = [i for i in boxes if i not in results]
     exercises = [i for i, (s, t) in enumerate(cells) if t == "markdown" and s.lstrip().startswith("## Exercises")]
-    assert len(box) == 1 and len(exercises) == 1
-    assert box[0] < exercises[0]
+    assert len(box) == 1 and len(results) <= 1 and len(exercises) == 1
+    assert box[0] < exercises[0] and all(box[0] < i < exercises[0] for i in results)
     between = [s for s, t in cells[box[0] + 1:exercises[0]]]
     assert all(s.startswith("<!--") or s.startswith(":::") for s in between), "only takeaways before the exercises"
-    bullets = re.findall(r"^- \*\*", cells[box[0]][0], re.M)
-    assert 3 <= len(bullets) <= 7, f"{len(bullets)} takeaways"
+    for i in box + results:
+        bullets = re.findall(r"^- \*\*", cells[i][0], re.M)
+        assert 3 <= len(bullets) <= 7, f"{len(bullets)} takeaways"

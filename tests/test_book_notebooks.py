@@ -69,7 +69,8 @@ def test_clear_notebooks_script_cleans_a_dirty_copy(tmp_path):
     assert json.loads(dirty.read_text(encoding="utf-8"))["cells"][0] == nb["cells"][0]
 
 
-CHAPTERS_WITH_CODE_LINE = ["01_kalman_filter", "02_bayesian_aggregation", "03_rkn", "04_acrkn", "06_mts3"]
+CHAPTERS_WITH_CODE_LINE = ["01_kalman_filter", "02_bayesian_aggregation", "03_rkn", "04_acrkn", "06_mts3",
+                           "07_planning"]
 
 
 @pytest.mark.parametrize("name", CHAPTERS_WITH_CODE_LINE)
