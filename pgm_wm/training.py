@@ -302,28 +302,31 @@ class FitHistory:
     """What :func:`fit` recorded.
 
     Per epoch (the last may be a partial epoch):
-        train_loss: mean training loss of the epoch's batches.
-        steps: optimizer steps done by the end of each epoch.
-        epoch_time: wall seconds of each epoch.
+
+    * ``train_loss``: mean training loss of the epoch's batches.
+    * ``steps``: optimizer steps done by the end of each epoch.
+    * ``epoch_time``: wall seconds of each epoch.
 
     Per validation (after every epoch by default, every ``valid_every`` optimizer steps and at the
     end with ``valid_every``; empty without ``valid_fn``):
-        valid_loss: the validation loss.
-        valid_steps: optimizer steps done when it was computed.
-        curve: the learning curve, one dict per validation: ``{"step", "epoch", "cpu_s", "wall_s",
-            "valid", "train"}``; ``cpu_s`` / ``wall_s`` are CPU (``time.process_time``) and wall
-            seconds from the first batch (validations included), ``train`` the
-            mean training loss of the batches since the previous entry. Without ``valid_fn`` there
-            is one entry per epoch with ``valid`` NaN.
+
+    * ``valid_loss``: the validation loss.
+    * ``valid_steps``: optimizer steps done when it was computed.
+    * ``curve``: the learning curve, one dict per validation with the keys ``step``, ``epoch``,
+      ``cpu_s``, ``wall_s``, ``valid`` and ``train``; ``cpu_s`` / ``wall_s`` are CPU
+      (``time.process_time``) and wall seconds from the first batch (validations included),
+      ``train`` the mean training loss of the batches since the previous entry. Without
+      ``valid_fn`` there is one entry per epoch with ``valid`` NaN.
 
     Totals:
-        best_epoch / best_step: epoch index and optimizer step of the lowest validation loss
-            (``None`` without one).
-        cpu_time / wall_time: CPU seconds and wall seconds in total (setup included).
-        setup_cpu_s: CPU seconds spent inside :func:`fit` before the first batch (checks,
-            optimizer, loading a checkpoint).
-        stopped: why the loop ended: ``"epochs"``, ``"budget"``, ``"patience"`` or ``"interrupted"``.
-        resumed_from_epoch: the epoch a checkpoint resumed at (``None`` for a fresh run).
+
+    * ``best_epoch`` / ``best_step``: epoch index and optimizer step of the lowest validation loss
+      (``None`` without one).
+    * ``cpu_time`` / ``wall_time``: CPU seconds and wall seconds in total (setup included).
+    * ``setup_cpu_s``: CPU seconds spent inside :func:`fit` before the first batch (checks,
+      optimizer, loading a checkpoint).
+    * ``stopped``: why the loop ended: ``"epochs"``, ``"budget"``, ``"patience"`` or ``"interrupted"``.
+    * ``resumed_from_epoch``: the epoch a checkpoint resumed at (``None`` for a fresh run).
     """
 
     train_loss: list[float] = field(default_factory=list)
