@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -267,9 +269,54 @@ def test_package_source_hash_tracks_the_source_and_the_note_says_so(tmp_path):
     assert package_source_hash(src) != h0
     here = {"provenance": provenance()}
     assert here["provenance"]["package_hash"] == h0 and package_note(here) is None
-    other = {"provenance": {**here["provenance"], "package_hash": "0" * 64}}
+    # a file without per-file code hashes: only the source hash can be compared
+    other = {"provenance": {k: v for k, v in here["provenance"].items() if k != "code_hashes"} | {"package_hash": "0" * 64}}
     assert "differs" in package_note(other)
     assert "did not record" in package_note({"provenance": {"date": "then"}})
+
+
+def test_code_fingerprint_ignores_documentation_but_not_code():
+    from pgm_wm.experiments.results import code_fingerprint
+
+    base = 'def f(x):\n    """doc"""\n    return x + 1\n\nA = 2\n"""attribute doc"""\n'
+    same = ('# a comment\ndef f(x):\n    """another, longer\n    docstring"""\n\n    return (x + 1)  # why\n\n\n'
+            'A = 2\n')
+    assert code_fingerprint(base) == code_fingerprint(same)
+    assert code_fingerprint(base) != code_fingerprint(base.replace("x + 1", "x + 2"))
+    assert code_fingerprint(base) != code_fingerprint(base.replace("A = 2", "A = 3"))
+    # a function left with only its docstring still parses as a function that does nothing
+    assert code_fingerprint('def g():\n    """only doc"""\n') == code_fingerprint("def g():\n    pass\n")
+
+
+def test_package_note_lists_the_files_whose_code_changed(monkeypatch):
+    from pgm_wm.experiments import results as R
+
+    here = {"provenance": R.provenance()}
+    now = here["provenance"]["code_hashes"]
+    assert "experiments/results.py" in now and len(now) > 20
+    assert R.changed_code(here) == [] and R.package_note(here) is None
+    # another source hash but the same code (a documentation edit): no note
+    doc_only = {"provenance": {**here["provenance"], "package_hash": "0" * 64}}
+    assert R.changed_code(doc_only) == [] and R.package_note(doc_only) is None
+    # code changed in one file, and a file that exists no more: both named; a file added since is not
+    then = {**now, "rkn.py": "1" * 64, "gone.py": "2" * 64}
+    then.pop("planning.py")
+    changed = {"provenance": {**doc_only["provenance"], "code_hashes": then}}
+    assert R.changed_code(changed) == ["gone.py", "rkn.py"]
+    note = R.package_note(changed)
+    assert "`pgm_wm/rkn.py`" in note and "`pgm_wm/gone.py`" in note and "planning.py" not in note
+    assert "2 package files" in note
+
+
+def test_committed_studies_record_the_code_that_made_them():
+    from pgm_wm.experiments.results import load_results
+
+    for path in sorted(Path(__file__).resolve().parents[1].glob("results/*.json")):
+        prov = load_results(path)["provenance"]
+        for p in [prov, *prov.get("parts", [])]:
+            hashes = p.get("code_hashes")
+            assert isinstance(hashes, dict) and len(hashes) > 20, path.name
+            assert all(len(h) == 64 for h in hashes.values()), path.name
 
 
 def test_cli_seed_start_and_merge(tmp_path):

@@ -32,6 +32,9 @@ from .stats import Interval, mean_interval, paired_ratio, rmse_interval
 
 __all__ = [
     "package_source_hash",
+    "code_fingerprint",
+    "package_code_hashes",
+    "changed_code",
     "package_note",
     "merge_results",
     "check_study",
@@ -84,9 +87,53 @@ def package_source_hash(root: str | os.PathLike | None = None) -> str:
     return h.hexdigest()
 
 
+def code_fingerprint(source: str | bytes) -> str:
+    """SHA-256 of a module's *code*: its syntax tree with every bare string statement (docstrings,
+    attribute docstrings) removed, written back as text by :func:`ast.unparse`; comments,
+    blank lines and formatting never reach the tree. Two sources with the same fingerprint run
+    the same statements; a documentation-only edit keeps the fingerprint."""
+    import ast
+    import hashlib
+
+    tree = ast.parse(source)
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if not isinstance(body, list):
+            continue
+        kept = [b for b in body if not (isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant)
+                                         and isinstance(b.value.value, str))]
+        if len(kept) != len(body):
+            node.body = kept or [ast.Pass()]
+    return hashlib.sha256(ast.unparse(tree).encode()).hexdigest()
+
+
+def package_code_hashes(root: str | os.PathLike | None = None) -> dict[str, str]:
+    """:func:`code_fingerprint` of every ``*.py`` file under ``pgm_wm/`` (or ``root``), keyed by its
+    path relative to the package; stored in a results file's provenance as ``code_hashes``."""
+    pkg = Path(__file__).resolve().parents[1] if root is None else Path(root)
+    return {f.relative_to(pkg).as_posix(): code_fingerprint(f.read_bytes())
+            for f in sorted(pkg.rglob("*.py")) if "__pycache__" not in f.parts}
+
+
+def changed_code(results: Mapping[str, Any]) -> list[str] | None:
+    """The package files whose code (:func:`code_fingerprint`) differs from the code that made
+    ``results``: files that existed then and changed or were removed since. Files added since are
+    not listed (the run could not use them). ``None`` if the file records no ``code_hashes``."""
+    then = results.get("provenance", {}).get("code_hashes")
+    if not isinstance(then, Mapping):
+        return None
+    now = package_code_hashes()
+    return sorted(f for f, h in then.items() if now.get(f) != h)
+
+
 def package_note(results: Mapping[str, Any]) -> str | None:
-    """``None`` if ``results`` were made by this package's source (:func:`package_source_hash`),
-    else a sentence saying that they were not (for a chapter to print visibly)."""
+    """``None`` if ``results`` were made by this package's code, else a sentence saying what
+    differs (for a chapter to print visibly).
+
+    Same code means the same source (:func:`package_source_hash`) or, where the file records
+    per-file ``code_hashes``, no file of the package as it was then has changed code since
+    (:func:`changed_code`): edits to docstrings and comments and modules added later cannot change
+    the numbers."""
     made = results.get("provenance", {}).get("package_hash")
     if made == package_source_hash():
         return None
@@ -94,13 +141,22 @@ def package_note(results: Mapping[str, Any]) -> str | None:
     if made is None:
         return (f"Note: these results were made on {when} by a package version that did not record its source "
                 f"hash, so they may come from other code than the package you are running.")
-    return (f"Note: these results were made on {when} by package source {made[:12]}, which differs from the source "
-            f"installed here ({package_source_hash()[:12]}); regenerate them with the command in their provenance "
-            f"to see the numbers of this code.")
+    changed = changed_code(results)
+    if changed == []:
+        return None
+    if changed is None:
+        return (f"Note: these results were made on {when} by package source {made[:12]}, which differs from the "
+                f"source installed here ({package_source_hash()[:12]}); regenerate them with the command in their "
+                f"provenance to see the numbers of this code.")
+    shown = ", ".join(f"`pgm_wm/{f}`" for f in changed[:8]) + (f" and {len(changed) - 8} more" if len(changed) > 8 else "")
+    return (f"Note: these results were made on {when}; since then the code (not only the documentation) of "
+            f"{len(changed)} package file{'s' if len(changed) > 1 else ''} changed: {shown}. The numbers come from the "
+            f"earlier code; regenerate them with the command in their provenance to see the numbers of this code.")
 
 
 def provenance(**extra: Any) -> dict[str, Any]:
-    """Commit, package-source hash, command, date and machine of the current run, plus ``extra``."""
+    """Commit, package-source hash, per-file code hashes (:func:`package_code_hashes`), command, date and
+    machine of the current run, plus ``extra``."""
     import torch
 
     # "dirty": tracked files changed other than results/ (the outputs of earlier runs are not code)
@@ -109,6 +165,7 @@ def provenance(**extra: Any) -> dict[str, Any]:
         "commit": _git("rev-parse", "HEAD") or "unknown",
         "dirty": bool(status) if status is not None else None,
         "package_hash": package_source_hash(),
+        "code_hashes": package_code_hashes(),
         "command": _command(),
         "date": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "machine": {
