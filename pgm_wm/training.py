@@ -568,10 +568,12 @@ def fit(
     # setup (argument checks, optimizer, checkpoint loading: setup_cpu_s) on
     hist.setup_cpu_s = time.process_time() - cpu_enter
     cpu0, wall0 = time.process_time() - used_before, wall_enter
-    by_epochs = epochs is not None
-    total = (epochs * n_batches) if by_epochs else round(float(budget_s), 1)
-    bar = tqdm(total=total, initial=min(epoch * n_batches, total) if by_epochs else 0, desc=desc,
-               unit="batch" if by_epochs else "cpu-s", disable=not show_progress(progress), leave=True)
+    # the progress bar counts batches (an epoch cap), CPU seconds (a budget) or steps (max_steps only)
+    by_epochs, by_steps = epochs is not None, epochs is None and budget_s is None
+    total = (epochs * n_batches) if by_epochs else max_steps if by_steps else round(float(budget_s), 1)
+    bar = tqdm(total=total, initial=min(epoch * n_batches, total) if by_epochs else min(n_steps, total) if by_steps
+               else 0, desc=desc, unit="batch" if by_epochs or by_steps else "cpu-s",
+               disable=not show_progress(progress), leave=True)
     since_total, since_count = 0.0, 0  # training loss since the last curve entry
     since_lr = 0                       # validations without improvement since the last lr change
 
@@ -658,7 +660,7 @@ def fit(
                 ep_total, ep_count = ep_total + value * size, ep_count + size
                 since_total, since_count = since_total + value * size, since_count + size
                 used = time.process_time() - cpu0
-                if by_epochs:
+                if by_epochs or by_steps:
                     bar.update(1)
                 else:
                     bar.update(max(0.0, min(round(used, 1), total) - bar.n))

@@ -347,7 +347,7 @@ def test_filtering_loss_is_the_nll_of_the_targets_with_the_drawn_mask():
 def _linear_fit(**kw):
     X, y = _regression_problem()
     w = torch.zeros(3, dtype=DT, requires_grad=True)
-    hist = fit(lambda b, g: ((b[0] @ w - b[1]) ** 2).mean(), [w], (X, y), 32, progress=False, **kw)
+    hist = fit(lambda b, g: ((b[0] @ w - b[1]) ** 2).mean(), [w], (X, y), 32, **{"progress": False, **kw})
     return w, hist
 
 
@@ -361,6 +361,13 @@ def test_fit_stops_at_the_cpu_budget():
     assert used < 0.3 + 1.0  # one batch at most past the budget, plus set-up
     _, capped = _linear_fit(epochs=2, budget_s=100.0)
     assert capped.stopped == "epochs" and capped.epochs == 2 and capped.steps == [8, 16]
+
+
+@pytest.mark.parametrize("progress", [False, True])
+def test_fit_with_max_steps_only_stops_there(progress):
+    # max_steps alone (no epoch cap, no budget) used to crash building the progress bar
+    _, hist = _linear_fit(epochs=None, max_steps=13, progress=progress)
+    assert hist.stopped == "budget" and hist.steps[-1] == 13 and hist.epochs == 2
 
 
 def test_fit_early_stopping_with_patience_and_keep_best_on_parameters():
