@@ -8,7 +8,7 @@ from scipy import stats as sps
 
 from pgm_wm.experiments.results import (conclusions, load_results, provenance, save_results, summarize,
                                         summary_table)
-from pgm_wm.experiments.stats import mean_interval, paired_ratio, rmse_interval
+from pgm_wm.experiments.stats import mean_interval, paired_mean_ratio, paired_ratio, rmse_interval
 
 
 def test_mean_interval_matches_t_interval_for_one_seed():
@@ -58,6 +58,25 @@ def test_paired_ratio_exact_cases_and_pairing():
     assert paired_ratio(w, b, seed=0).hi < 1.0
     # unpaired intervals of the two RMSEs overlap although the paired ratio is clear
     assert rmse_interval(w).hi > rmse_interval(b).lo
+
+
+def test_paired_mean_ratio_exact_cases_pairing_and_relation_to_paired_ratio():
+    rng = np.random.default_rng(5)
+    a1 = rng.gamma(2.0, 1.0, size=(1, 40))
+    iv = paired_mean_ratio(a1, 2.5 * a1)              # one seed, same tasks, costs times 2.5: exactly 0.4
+    assert (iv.point, iv.lo, iv.hi) == pytest.approx((0.4, 0.4, 0.4))
+    # a ratio of means is the square of paired_ratio applied to the same numbers as squared errors
+    a = rng.gamma(2.0, 1.0, size=(3, 40))
+    b = rng.gamma(2.0, 1.0, size=(3, 40))
+    pm, pr = paired_mean_ratio(a, b, seed=3), paired_ratio(a, b, seed=3)
+    assert (pm.point, pm.lo, pm.hi) == pytest.approx((pr.point ** 2, pr.lo ** 2, pr.hi ** 2))
+    # tasks vary a lot, the difference is small but consistent: pairing resolves it
+    w = rng.gamma(0.5, 4.0, size=(2, 150))
+    assert paired_mean_ratio(w, 1.1 * w).hi < 1.0 and mean_interval(w).hi > mean_interval(1.1 * w).lo
+    with pytest.raises(ValueError, match="^values_b"):
+        paired_mean_ratio(np.ones((2, 3)), np.ones((2, 4)))
+    with pytest.raises(ValueError, match="^values_a"):
+        paired_mean_ratio(-np.ones((2, 3)), np.ones((2, 3)))
 
 
 def test_bad_inputs_name_the_argument():

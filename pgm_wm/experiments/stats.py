@@ -32,7 +32,7 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["Interval", "bootstrap_statistic", "rmse_interval", "mean_interval", "paired_ratio"]
+__all__ = ["Interval", "bootstrap_statistic", "rmse_interval", "mean_interval", "paired_ratio", "paired_mean_ratio"]
 
 
 @dataclass(frozen=True)
@@ -136,3 +136,26 @@ def paired_ratio(sq_err_a: object, sq_err_b: object, n_boot: int = 2000, level: 
     lo, hi = np.quantile(ratio, [alpha, 1.0 - alpha])
     point = float(np.sqrt(a.mean() / max(b.mean(), np.finfo(np.float64).tiny)))
     return Interval(point, float(lo), float(hi))
+
+
+def paired_mean_ratio(values_a: object, values_b: object, n_boot: int = 2000, level: float = 0.95,
+                      seed: int = 0) -> Interval:
+    """Ratio mean(a) / mean(b) of two non-negative per-(seed, window) measures (e.g. closed-loop
+    costs per seed and task), paired over windows as :func:`paired_ratio`: windows (tasks) are
+    resampled jointly, the two models' seeds independently. Below 1 means ``a`` is lower."""
+    a = _check_values("values_a", values_a)
+    b = _check_values("values_b", values_b)
+    if a.shape[1] != b.shape[1]:
+        raise ValueError(f"values_b: expected {a.shape[1]} windows (the same as values_a), got {b.shape[1]}")
+    if (a < 0).any() or (b < 0).any():
+        raise ValueError("values_a: values must be non-negative")
+    _check_level(level, n_boot)
+    rng = np.random.default_rng(seed)
+    windows = rng.integers(0, a.shape[1], size=(n_boot, a.shape[1]))
+    ra = _resample_means(a, rng, n_boot, windows)
+    rb = _resample_means(b, rng, n_boot, windows)
+    tiny = np.finfo(np.float64).tiny
+    ratio = ra / np.maximum(rb, tiny)
+    alpha = (1.0 - level) / 2.0
+    lo, hi = np.quantile(ratio, [alpha, 1.0 - alpha])
+    return Interval(float(a.mean() / max(b.mean(), tiny)), float(lo), float(hi))
