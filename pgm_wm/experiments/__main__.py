@@ -1,7 +1,9 @@
 """``python -m pgm_wm.experiments NAME [--seeds 5] [--seed-start 0] [--budget 60] [--jobs 2] [--models A B]
 [--max-steps N] [--out F] [--force]``: run a chapter's multi-seed experiment and write
 ``results/NAME.json`` (see :mod:`pgm_wm.experiments.runner`); ``python -m pgm_wm.experiments merge
-OUT PART...`` merges parts run with different seeds. Every argument and the output path are checked before any
+OUT PART...`` merges parts run with different seeds; ``python -m pgm_wm.experiments ch7 [--seeds 5] [--budget 240]
+[--jobs 2] [--tasks 16] [--out F] [--force]`` runs Chapter 7's closed-loop planning study
+(:mod:`pgm_wm.experiments.planning_study`). Every argument and the output path are checked before any
 training; the file is written atomically; a committed results file is only replaced with
 ``--force``."""
 
@@ -57,10 +59,54 @@ def merge_main(argv: list[str]) -> int:
     return 0
 
 
+def ch7_main(argv: list[str]) -> int:
+    """``python -m pgm_wm.experiments ch7 ...``: Chapter 7's closed-loop study
+    (:func:`pgm_wm.experiments.planning_study.run_planning_study`), written to
+    ``results/ch7_memory_arm.json`` unless ``--out`` says otherwise."""
+    from .planning_study import PlanningProtocol, planning_ratios, planning_table, run_planning_study
+
+    parser = argparse.ArgumentParser(prog="python -m pgm_wm.experiments ch7", description=ch7_main.__doc__)
+    parser.add_argument("--seeds", type=_positive_int, default=5, help="number of seeds; default 5")
+    parser.add_argument("--seed-start", type=int, default=0, help="first seed (default 0)")
+    parser.add_argument("--budget", type=_budget, default=240.0,
+                        help="CPU seconds of training per model and seed (default 240, Chapter 4's study)")
+    parser.add_argument("--max-steps", type=_positive_int, default=None, help="also stop training after this many steps")
+    parser.add_argument("--tasks", type=_positive_int, default=PlanningProtocol.n_tasks, help="targets per seed")
+    parser.add_argument("--steps", type=_positive_int, default=PlanningProtocol.steps, help="control steps per task")
+    parser.add_argument("--jobs", type=_positive_int, default=1,
+                        help=f"parallel processes (each one thread); at most {os.cpu_count() or 1} here")
+    parser.add_argument("--out", default=None, help="output file (default results/ch7_memory_arm.json)")
+    parser.add_argument("--force", action="store_true", help="overwrite a committed results file")
+    args = parser.parse_args(argv)
+    if args.jobs > (os.cpu_count() or 1):
+        parser.error(f"argument --jobs: {args.jobs} processes but this machine has {os.cpu_count()} CPUs")
+    if args.seed_start < 0:
+        parser.error("argument --seed-start: must be >= 0")
+    out = args.out or str(Path(__file__).resolve().parents[2] / "results" / "ch7_memory_arm.json")
+    try:
+        check_output_path(out, force=args.force)
+        protocol = PlanningProtocol(n_tasks=args.tasks, steps=args.steps,
+                                    success_steps=min(PlanningProtocol.success_steps, args.steps))
+    except ValueError as err:
+        parser.error(f"argument --out: {err}" if "out" in str(err)[:4] else str(err))
+    res = run_planning_study(range(args.seed_start, args.seed_start + args.seeds), args.budget, out,
+                             protocol=protocol, jobs=args.jobs, max_steps=args.max_steps)
+    for name, row in planning_table(res, n_boot=500).items():
+        print(f"{name:28s} cost {row['cost'].format()}  success {row['success'].format('.2f')}  "
+              f"final error {row['final_error'].format('.3g', 1e3)} mrad")
+    for rival, iv in planning_ratios(res, "CEM through the ac-RKN", ["CEM through the ARX model", "CEM through the GRU"],
+                                     n_boot=500).items():
+        print(f"cost ratio ac-RKN / {rival}: {iv.format()}")
+    print(f"written: {out}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] == "merge":
         return merge_main(argv[1:])
+    if argv and argv[0] == "ch7":
+        return ch7_main(argv[1:])
     parser = argparse.ArgumentParser(prog="python -m pgm_wm.experiments", description=__doc__)
     parser.add_argument("name", choices=sorted(EXPERIMENTS), help="which chapter's experiment")
     parser.add_argument("--seeds", type=_positive_int, default=5, help="number of seeds; default 5")

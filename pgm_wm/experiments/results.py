@@ -42,6 +42,7 @@ __all__ = [
     "validation_choice",
     "provenance",
     "save_results",
+    "write_json",
     "load_results",
     "summarize",
     "summary_table",
@@ -200,9 +201,10 @@ def _check_results(results: Mapping[str, Any]) -> None:
             raise ValueError(f"results: model {name!r} was scored on {sq.shape[2]} windows, others on {n_windows}")
 
 
-def save_results(path: str | os.PathLike, results: Mapping[str, Any]) -> Path:
-    """Write ``results`` as JSON (numbers rounded to 7 significant digits to keep files small)."""
-    _check_results(results)
+def write_json(path: str | os.PathLike, data: Mapping[str, Any]) -> Path:
+    """Write ``data`` as JSON, atomically (a failed write leaves the old file as it was), numbers
+    rounded to 7 significant digits to keep files small; numpy arrays and scalars become lists and
+    numbers."""
 
     def clean(x: Any) -> Any:
         if isinstance(x, Mapping):
@@ -219,8 +221,7 @@ def save_results(path: str | os.PathLike, results: Mapping[str, Any]) -> Path:
 
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(clean(results), indent=1) + "\n"
-    # atomic: a failed write leaves the old file as it was, never half a JSON document
+    text = json.dumps(clean(data), indent=1) + "\n"
     tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
     try:
         tmp.write_text(text)
@@ -229,6 +230,12 @@ def save_results(path: str | os.PathLike, results: Mapping[str, Any]) -> Path:
         if tmp.exists():
             tmp.unlink()
     return p
+
+
+def save_results(path: str | os.PathLike, results: Mapping[str, Any]) -> Path:
+    """Write a prediction study's ``results`` (checked first) with :func:`write_json`."""
+    _check_results(results)
+    return write_json(path, results)
 
 
 def is_committed(path: str | os.PathLike) -> bool:

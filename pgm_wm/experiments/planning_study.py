@@ -1,0 +1,324 @@
+r"""Chapter 7's closed-loop study: planning through learned world models on the memory arm.
+
+``python -m pgm_wm.experiments ch7 --seeds 5 --budget 240 --jobs 2`` writes
+``results/ch7_memory_arm.json``. The design (Chapter 7, Section 7.4):
+
+* **Models** of Chapter 4's study, trained exactly as there (:func:`~pgm_wm.experiments.runner.train_model`
+  with :func:`~pgm_wm.experiments.chapters.ch4_experiment`'s protocol and the same CPU budget per
+  model and seed): the ac-RKN (difference readout) and the GRU; plus the linear ARX model fitted in
+  closed form on the training split in radians, its order chosen among 1, 2 and 5 on validation
+  (:func:`fit_arx`).
+* **Tasks**: ``n_tasks`` target angle pairs drawn once (``task_seed``) uniformly inside the 10–90 %
+  quantiles of the training split's angles per joint (:func:`planning_tasks`): targets the arm
+  visits in the data, none of them a training sequence. Every policy and seed plans the same tasks.
+* **Closed loop** (:func:`pgm_wm.planning.closed_loop`, Eq. plan-closed-loop): from rest, after a
+  history of ``context`` steps with zero commands (the warm-up of Chapter 4's protocol), ``steps``
+  control steps; at each step the policy plans ``horizon`` steps ahead, its first command goes to
+  the simulator. Cost and success are measured in the simulator only.
+* **Policies** (rows): CEM through the simulator from its true state (upper reference), LQR through
+  the ARX model (exact, clipped), CEM through the ARX model, CEM through the ac-RKN, CEM through the
+  GRU, zero commands and uniform random commands (lower references). Every CEM row uses the same
+  settings (``n_samples``, ``n_iters``, ``elite_frac``) and, per seed and task, the same sampler
+  seed.
+
+The file stores, per policy, ``(seeds, tasks)`` arrays of the true total cost, success (0/1),
+final tracking error (mean over the last 10 steps), the mean absolute command change per step and
+the share of commands beyond 0.9 in magnitude (with the training split's values in
+``data_commands``), for the CEM rows the RMSE of the model's predictions along the plans it chose
+(every plan replayed in the simulator from the state where it was made; ``(seeds, tasks, H)``),
+the wall time per seed, and, per trained model and seed, the training
+record of Chapter 4's runner (steps, CPU seconds, best validation RMSE, the stopping rule's
+verdict). :func:`planning_table` and :func:`planning_ratios` compute the chapter's tables from it
+with the intervals of :mod:`pgm_wm.experiments.stats` (tasks as windows, paired over tasks).
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+import time
+from dataclasses import asdict, dataclass
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from .results import provenance, write_json
+from .stats import Interval, mean_interval, paired_mean_ratio
+
+__all__ = ["PlanningProtocol", "PLANNING_MODELS", "POLICIES", "fit_arx", "planning_tasks", "run_planning_study",
+           "check_planning_study", "planning_table", "planning_ratios"]
+
+PLANNING_MODELS = ("ac-RKN (difference readout)", "GRU")
+"""The trained models of Chapter 4's study that the study plans through."""
+
+POLICIES = ("CEM + true simulator", "LQR through the ARX model", "CEM through the ARX model",
+            "CEM through the ac-RKN", "CEM through the GRU", "zero commands", "random commands")
+"""The rows of the study, in table order (upper reference first, lower references last)."""
+
+
+@dataclass(frozen=True)
+class PlanningProtocol:
+    """Settings of the closed-loop study (the same for every policy).
+
+    ``context``: rest steps before the first command (the models' warm-up); ``horizon``: the
+    planning horizon :math:`H`; ``steps``: control steps :math:`T`; a task succeeds when the largest
+    joint error is at most ``tol`` (rad) on each of the last ``success_steps`` steps; the cost
+    weights are ``obs_weight`` :math:`\\cdot I` and ``action_weight`` :math:`\\cdot I`; CEM draws
+    ``n_samples`` candidates for ``n_iters`` iterations with ``elite_frac``; ``model_context``:
+    the most recent observations a learned model sees."""
+
+    context: int = 50
+    horizon: int = 10
+    steps: int = 50
+    tol: float = 0.02
+    success_steps: int = 5
+    n_tasks: int = 16
+    task_seed: int = 7
+    obs_weight: float = 1.0
+    action_weight: float = 1e-2
+    n_samples: int = 64
+    n_iters: int = 3
+    elite_frac: float = 0.1
+    model_context: int = 50
+
+    def __post_init__(self) -> None:
+        for name in ("context", "horizon", "steps", "success_steps", "n_tasks", "n_samples", "n_iters",
+                     "model_context"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise ValueError(f"{name}: must be a positive int, got {v!r}")
+        if self.success_steps > self.steps:
+            raise ValueError(f"success_steps: must be <= steps = {self.steps}, got {self.success_steps}")
+        for name in ("tol", "obs_weight", "action_weight"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name}: must be a positive finite number, got {v!r}")
+        if not 0.0 < self.elite_frac <= 1.0:
+            raise ValueError(f"elite_frac: must be in (0, 1], got {self.elite_frac!r}")
+
+
+def fit_arx(train: Any, valid: Any, orders: Sequence[int] = (1, 2, 5), horizon: int = 50) -> nn.Module:
+    """The linear ARX model in original units (radians, valve commands), fitted in closed form on
+    ``train`` (:class:`~pgm_wm.datasets.sequences.SequenceData`), its order chosen among ``orders``
+    by the mean open-loop RMSE over ``1..horizon`` steps on ``valid`` (windows of ``horizon``
+    steps after a 50-step context, stride 50), as in Chapter 4."""
+    from ..baselines import LinearARX
+    from ..evaluation import evaluate_open_loop
+
+    obs_tr, act_tr = train.obs.double(), train.actions.double()
+    obs_va, act_va = valid.obs.double(), valid.actions.double()
+    fits = {p: LinearARX.fit(obs_tr, act_tr, order=p) for p in orders}
+    score = {p: float(evaluate_open_loop(m, obs_va, act_va, 50, horizon, stride=50).rmse.mean())
+             for p, m in fits.items()}
+    return fits[min(score, key=score.get)]
+
+
+def planning_tasks(train: Any, n_tasks: int, seed: int) -> np.ndarray:
+    """``(n_tasks, do)`` targets drawn uniformly inside the 10–90 % quantiles of the training
+    split's observations per dimension (seeded)."""
+    obs = train.obs.double().reshape(-1, train.obs.shape[-1]).numpy()
+    lo, hi = np.quantile(obs, [0.1, 0.9], axis=0)
+    return np.random.default_rng(seed).uniform(lo, hi, size=(n_tasks, obs.shape[1]))
+
+
+def _train_one(task: tuple[str, int, float, int | None]) -> tuple[str, int, dict[str, torch.Tensor], dict[str, Any]]:
+    from .chapters import ch4_experiment
+    from .runner import train_model
+
+    torch.set_num_threads(1)
+    name, seed, budget_s, max_steps = task
+    model, info = train_model(ch4_experiment("memory_arm"), name, seed, budget_s, max_steps=max_steps)
+    return name, seed, {k: v.detach().clone() for k, v in model.state_dict().items()}, info
+
+
+def _plan_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[str, Any]]) -> tuple[int, dict[str, Any]]:
+    from ..planning import (ARXLQRPolicy, ConstantPolicy, MemoryArmEnv, QuadraticCost, RandomPolicy, SamplingPlanner,
+                            closed_loop, simulator_predictor, warm_up, world_model_predictor)
+    from ..training import set_seed
+    from .chapters import ch4_experiment
+
+    torch.set_num_threads(1)
+    seed, states, cfg = task
+    p = PlanningProtocol(**cfg["protocol"])
+    exp = ch4_experiment("memory_arm")
+    splits = exp.load()
+    models = {}
+    for name, state in states.items():
+        set_seed(seed)
+        m = exp.models[name].build(splits)
+        m.load_state_dict(state)
+        models[name] = m.eval()
+    arx = fit_arx(splits.train, splits.valid)
+    env = MemoryArmEnv()
+    state0, oh0, ah0 = warm_up(env, env.initial_state(), np.zeros((p.context - 1, env.action_dim)))
+    W = torch.full((env.obs_dim,), p.obs_weight, dtype=torch.float64)
+    R = torch.full((env.action_dim,), p.action_weight, dtype=torch.float64)
+    cost = QuadraticCost(W, R)
+    stats = splits.train.stats
+    predictors = {"CEM + true simulator": simulator_predictor(env),
+                  "CEM through the ARX model": world_model_predictor(arx, context_len=arx.order + 1),
+                  "CEM through the ac-RKN": world_model_predictor(models[PLANNING_MODELS[0]], stats,
+                                                                  context_len=p.model_context),
+                  "CEM through the GRU": world_model_predictor(models[PLANNING_MODELS[1]], stats,
+                                                               context_len=p.model_context)}
+    tasks = np.asarray(cfg["tasks"], dtype=np.float64)
+    out: dict[str, Any] = {name: {"cost": [], "success": [], "final_error": [], "command_change": [],
+                                  "near_bounds": [], "onplan_rmse": [], "wall_s": 0.0} for name in POLICIES}
+    # the commands of the training split, for comparison with the planners' commands
+    a_tr = splits.train.actions.double()
+    out["_data_commands"] = {"command_change": float((a_tr[:, 1:] - a_tr[:, :-1]).abs().mean()),
+                             "near_bounds": float((a_tr.abs() > 0.9).double().mean())}
+    for i, target in enumerate(tasks):
+        sampler_seed = 1000 * seed + i
+
+        def cem(predict: Any) -> SamplingPlanner:
+            return SamplingPlanner(predict, cost, p.horizon, env.action_low, env.action_high, method="cem",
+                                   n_samples=p.n_samples, n_iters=p.n_iters, elite_frac=p.elite_frac,
+                                   seed=sampler_seed)
+
+        policies = {**{n: cem(pr) for n, pr in predictors.items()},
+                    "LQR through the ARX model": ARXLQRPolicy(arx, W, R, p.horizon, env.action_low, env.action_high),
+                    "zero commands": ConstantPolicy(np.zeros(env.action_dim)),
+                    "random commands": RandomPolicy(env.action_low, env.action_high, seed=sampler_seed)}
+        for name in POLICIES:
+            policy = _Recorder(policies[name]) if name.startswith("CEM") else policies[name]
+            t0 = time.perf_counter()
+            run = closed_loop(env, policy, state0, oh0, ah0, target, p.steps, cost, tol=p.tol,
+                              success_steps=p.success_steps)
+            out[name]["wall_s"] += time.perf_counter() - t0
+            out[name]["cost"].append(run.total_cost)
+            out[name]["success"].append(float(run.success))
+            out[name]["final_error"].append(float(run.error[-10:].mean()))
+            a = run.actions
+            out[name]["command_change"].append(float((a[1:] - a[:-1]).abs().mean()))
+            out[name]["near_bounds"].append(float((a.abs() > 0.9).double().mean()))
+            if isinstance(policy, _Recorder):
+                # the model's k-step prediction error along the plans it chose: every plan replayed in
+                # the simulator from the true state where it was made
+                starts = [state0, *run.states[:-1]]
+                err = np.stack([run.pred_mean[t].numpy() - env.rollout(starts[t], plan[None].numpy())[0]
+                                for t, plan in enumerate(policy.plans)])
+                out[name]["onplan_rmse"].append(np.sqrt((err ** 2).mean(axis=(0, 2))).tolist())
+    out["_arx_order"] = arx.order
+    return seed, out
+
+
+class _Recorder:
+    """Passes every call to a planner and keeps the plan (action sequence) it chose."""
+
+    def __init__(self, planner: Any) -> None:
+        self.planner, self.horizon, self.plans = planner, planner.horizon, []
+
+    @property
+    def last_plan(self) -> Any:
+        return self.planner.last_plan
+
+    def __call__(self, *args: Any) -> torch.Tensor:
+        action = self.planner(*args)
+        self.plans.append(self.planner.last_plan.actions.clone())
+        return action
+
+
+def _pool_map(fn: Any, tasks: list, jobs: int) -> list:
+    if jobs <= 1 or len(tasks) <= 1:
+        return [fn(t) for t in tasks]
+    with mp.get_context("spawn").Pool(min(jobs, len(tasks))) as pool:
+        return pool.map(fn, tasks, chunksize=1)
+
+
+def run_planning_study(seeds: Sequence[int], budget_s: float, out_path: str | None = None, *,
+                       protocol: PlanningProtocol | None = None, jobs: int = 1,
+                       max_steps: int | None = None) -> dict[str, Any]:
+    """Train the :data:`PLANNING_MODELS` for every seed (``budget_s`` CPU seconds each, Chapter 4's
+    protocol), then run every policy of :data:`POLICIES` on every task in closed loop; write the
+    results to ``out_path`` (if given) and return them. ``jobs`` processes, one thread each."""
+    from .chapters import ch4_experiment
+
+    p = protocol or PlanningProtocol()
+    seeds = [int(s) for s in seeds]
+    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+        raise ValueError(f"seeds: need distinct non-negative seeds, got {seeds}")
+    if not (isinstance(budget_s, (int, float)) and math.isfinite(budget_s) and budget_s > 0):
+        raise ValueError(f"budget_s: must be a positive finite number of CPU seconds, got {budget_s!r}")
+    wall0 = time.perf_counter()
+    splits = ch4_experiment("memory_arm").load()
+    tasks = planning_tasks(splits.train, p.n_tasks, p.task_seed)
+    trained = _pool_map(_train_one, [(n, s, float(budget_s), max_steps) for s in seeds for n in PLANNING_MODELS],
+                        jobs)
+    states = {s: {} for s in seeds}
+    training: dict[str, list[dict[str, Any]]] = {n: [None] * len(seeds) for n in PLANNING_MODELS}  # type: ignore[list-item]
+    for name, seed, state, info in trained:
+        states[seed][name] = state
+        training[name][seeds.index(seed)] = info
+    cfg = {"protocol": asdict(p), "tasks": tasks.tolist()}
+    planned = dict(_pool_map(_plan_seed, [(s, states[s], cfg) for s in seeds], jobs))
+    keys = ("cost", "success", "final_error", "command_change", "near_bounds", "onplan_rmse", "wall_s")
+    policies = {name: {key: [planned[s][name][key] for s in seeds] for key in keys} for name in POLICIES}
+    res = {"experiment": "ch7_memory_arm",
+           "description": "Chapter 7, closed-loop planning through learned world models on memory_arm",
+           "provenance": provenance(budget_cpu_s=float(budget_s), seeds=seeds, jobs=jobs, max_steps=max_steps,
+                                    wall_s=round(time.perf_counter() - wall0, 1)),
+           "protocol": asdict(p), "tasks": tasks.tolist(), "units": "rad",
+           "arx_order": planned[seeds[0]]["_arx_order"], "data_commands": planned[seeds[0]]["_data_commands"], "models": list(PLANNING_MODELS),
+           "training": training, "policies": policies}
+    check_planning_study(res, min_seeds=1)
+    if out_path is not None:
+        write_json(out_path, res)
+    return res
+
+
+def check_planning_study(results: Mapping[str, Any], min_seeds: int = 5) -> None:
+    """Raise ``ValueError`` unless ``results`` is a complete closed-loop study: at least
+    ``min_seeds`` seeds, the package provenance, every policy of :data:`POLICIES` with finite
+    ``(seeds, tasks)`` costs, 0/1 successes and errors, and for every trained model and seed its
+    training record (steps, curve, the stopping rule's verdict)."""
+    for key in ("provenance", "protocol", "tasks", "training", "policies"):
+        if key not in results:
+            raise ValueError(f"results: missing key {key!r}")
+    prov = results["provenance"]
+    seeds = prov.get("seeds", [])
+    if len(seeds) < min_seeds:
+        raise ValueError(f"results: {len(seeds)} seeds, need at least {min_seeds}")
+    if not prov.get("package_hash") or not prov.get("code_hashes"):
+        raise ValueError("results: no package_hash / code_hashes in the provenance")
+    shape = (len(seeds), len(results["tasks"]))
+    for name in POLICIES:
+        entry = results["policies"].get(name)
+        if entry is None:
+            raise ValueError(f"results: no policy {name!r}")
+        for key in ("cost", "success", "final_error"):
+            v = np.asarray(entry[key], dtype=np.float64)
+            if v.shape != shape or not np.isfinite(v).all() or (v < 0).any():
+                raise ValueError(f"results: policy {name!r}, {key!r} is not a finite non-negative {shape} array")
+        if not np.isin(np.asarray(entry["success"]), (0.0, 1.0)).all():
+            raise ValueError(f"results: policy {name!r}, 'success' is not 0/1")
+    for name in PLANNING_MODELS:
+        runs = results["training"].get(name, [])
+        if len(runs) != len(seeds) or any(r is None or not {"steps", "curve", "converged", "best_valid"} <= set(r)
+                                          for r in runs):
+            raise ValueError(f"results: model {name!r} lacks a training record per seed")
+
+
+def planning_table(results: Mapping[str, Any], n_boot: int = 2000) -> dict[str, dict[str, Interval]]:
+    """Per policy: mean true cost, success rate and mean final tracking error (rad), each with the
+    two-level (seeds × tasks) bootstrap interval of :func:`~pgm_wm.experiments.stats.mean_interval`."""
+    out = {}
+    for name in POLICIES:
+        e = results["policies"][name]
+        out[name] = {key: mean_interval(np.asarray(e[key], dtype=np.float64), n_boot=n_boot)
+                     for key in ("cost", "success", "final_error")}
+    return out
+
+
+def planning_ratios(results: Mapping[str, Any], policy: str, rivals: Sequence[str],
+                    n_boot: int = 2000) -> dict[str, Interval]:
+    """Mean cost of ``policy`` over the mean cost of each rival, paired over tasks
+    (:func:`~pgm_wm.experiments.stats.paired_mean_ratio`); below 1: ``policy`` is cheaper."""
+    pol = results["policies"]
+    for name in (policy, *rivals):
+        if name not in pol:
+            raise ValueError(f"policy: unknown policy {name!r}; known: {', '.join(pol)}")
+    a = np.asarray(pol[policy]["cost"], dtype=np.float64)
+    return {r: paired_mean_ratio(a, np.asarray(pol[r]["cost"], dtype=np.float64), n_boot=n_boot) for r in rivals}
