@@ -34,10 +34,13 @@ with the intervals of :mod:`pgm_wm.experiments.stats` (tasks as windows, paired 
 
 from __future__ import annotations
 
+import json
 import math
 import multiprocessing as mp
+import os
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -48,7 +51,7 @@ from .results import provenance, write_json
 from .stats import Interval, mean_interval, paired_mean_ratio
 
 __all__ = ["PlanningProtocol", "PLANNING_MODELS", "POLICIES", "fit_arx", "planning_tasks", "run_planning_study",
-           "check_planning_study", "planning_table", "planning_ratios"]
+           "check_planning_study", "load_planning_study", "planning_table", "planning_ratios"]
 
 PLANNING_MODELS = ("ac-RKN (difference readout)", "GRU")
 """The trained models of Chapter 4's study that the study plans through."""
@@ -299,6 +302,17 @@ def check_planning_study(results: Mapping[str, Any], min_seeds: int = 5) -> None
         if len(runs) != len(seeds) or any(r is None or not {"steps", "curve", "converged", "best_valid"} <= set(r)
                                           for r in runs):
             raise ValueError(f"results: model {name!r} lacks a training record per seed")
+
+
+def load_planning_study(path: str | os.PathLike) -> dict[str, Any]:
+    """Read a closed-loop study written by :func:`run_planning_study` and check it
+    (:func:`check_planning_study`, any number of seeds)."""
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"path: no results file at {p}; run `python -m pgm_wm.experiments ch7` to make it")
+    res = json.loads(p.read_text())
+    check_planning_study(res, min_seeds=1)
+    return res
 
 
 def planning_table(results: Mapping[str, Any], n_boot: int = 2000) -> dict[str, dict[str, Interval]]:
