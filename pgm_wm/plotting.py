@@ -493,8 +493,12 @@ def plot_learning_curves(ax: Any, results: Mapping[str, Any], models: Sequence[s
                          references: Sequence[str] | None = None, x: str = "cpu_s", n_grid: int = 200) -> None:
     """Validation RMSE (normalized units, lowest so far) against CPU seconds (``x="cpu_s"``) or
     optimizer steps (``x="step"``) for the trained ``models`` of a results file: the median over
-    seeds as a line, the range over seeds as a band; the ``references`` (rows fitted in closed
-    form, the physics oracle) as horizontal dashed lines at their validation RMSE. Log-log axes."""
+    seeds as a line, the range over seeds as a band, each model's line ending where its shortest
+    run ends (a model that took fewer steps in the same budget is not drawn flat beyond them); the
+    ``references`` (rows fitted in closed form, the physics oracle) as horizontal dashed lines at
+    their validation RMSE. Log-log axes."""
+    import warnings
+
     entries = results["models"]
     if models is None:
         models = [n for n, e in entries.items() if e.get("trained", True)]
@@ -504,12 +508,15 @@ def plot_learning_curves(ax: Any, results: Mapping[str, Any], models: Sequence[s
     low = min(min(e[x] for e in r["curve"]) for n in models for r in entries[n]["runs"])
     grid = np.geomspace(max(low, 1e-3), top, n_grid)
     for n in models:
-        curves = np.stack([best_so_far(r["curve"], grid, x=x) for r in entries[n]["runs"]])
-        with np.errstate(all="ignore"):
+        runs = entries[n]["runs"]
+        g = grid[grid <= min(r["curve"][-1][x] for r in runs)]
+        curves = np.stack([best_so_far(r["curve"], g, x=x) for r in runs])
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)       # grid points before a run's first record
             med = np.nanmedian(curves, 0)
             lo, hi = np.nanmin(curves, 0), np.nanmax(curves, 0)
-        (line,) = ax.plot(grid, med, lw=1.6, label=n)
-        ax.fill_between(grid, lo, hi, color=line.get_color(), alpha=0.2, lw=0)
+        (line,) = ax.plot(g, med, lw=1.6, label=n)
+        ax.fill_between(g, lo, hi, color=line.get_color(), alpha=0.2, lw=0)
     styles = iter([(0, (4, 2)), (0, (1, 1.5)), (0, (6, 2, 1, 2)), (0, (2, 2))] * 3)
     for n in references:
         v = entries[n]["runs"][0].get("best_valid") if entries[n].get("runs") else None

@@ -349,6 +349,41 @@ def test_best_so_far_and_the_learning_curve_figure():
     plt.close(fig)
 
 
+def test_learning_curves_by_step_end_where_each_model_stopped():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pgm_wm.plotting import plot_learning_curves
+
+    def run(last):
+        steps = np.geomspace(1, last, 6)
+        return {"curve": [{"step": float(t), "cpu_s": float(t), "valid": 1.0 / t} for t in steps]}
+
+    res = {"models": {"slow": {"trained": True, "runs": [run(10), run(12)]},
+                      "fast": {"trained": True, "runs": [run(100), run(90)]}}}
+    fig, ax = plt.subplots()
+    plot_learning_curves(ax, res, x="step")
+    ends = {line.get_label(): line.get_xdata().max() for line in ax.lines}
+    assert ends["slow"] <= 10 and 80 < ends["fast"] <= 90      # the shortest run of each model
+    plt.close(fig)
+
+
+def test_paired_ratios_per_horizon_equal_paired_ratio():
+    from pgm_wm.experiments.results import paired_ratios
+    from pgm_wm.experiments.stats import paired_ratio
+
+    rng = np.random.default_rng(0)
+    res = {"horizons": [1, 5], "models": {m: {"sq_err": rng.gamma(2.0, 1.0, size=(3, 2, 20))} for m in "abc"}}
+    out = paired_ratios(res, "a", ["b", "c"], n_boot=200)
+    assert set(out) == {"b", "c"} and all(len(v) == 2 for v in out.values())
+    a, c = np.asarray(res["models"]["a"]["sq_err"]), np.asarray(res["models"]["c"]["sq_err"])
+    assert out["c"][1] == paired_ratio(a[:, 1], c[:, 1], n_boot=200)
+    with pytest.raises(ValueError, match="^ours"):
+        paired_ratios(res, "a", ["z"])
+
+
 def test_stored_models_load_back_to_the_same_predictions(tmp_path):
     from pgm_wm.experiments.runner import load_trained, model_path, test_windows
 

@@ -39,6 +39,7 @@ __all__ = [
     "merge_results",
     "check_study",
     "training_table",
+    "paired_ratios",
     "validation_choice",
     "provenance",
     "save_results",
@@ -451,6 +452,20 @@ def validation_choice(results: Mapping[str, Any], variants: Sequence[str]) -> tu
     return best, (f"Chosen on validation, never on the test split: {best} has the lowest mean validation "
                   f"open-loop RMSE of its selected epoch over {len(results['models'][best]['runs'])} seeds "
                   f"(normalized units: {listed}).")
+
+
+def paired_ratios(results: Mapping[str, Any], ours: str, rivals: Sequence[str], n_boot: int = 2000,
+                  seed: int = 0) -> dict[str, list[Interval]]:
+    """Per rival and horizon, RMSE(``ours``) / RMSE(rival) with the paired interval of
+    :func:`~pgm_wm.experiments.stats.paired_ratio` (test windows resampled jointly, seeds
+    independently); below 1 means ``ours`` has the lower error."""
+    models = results["models"]
+    for name in (ours, *rivals):
+        if name not in models:
+            raise ValueError(f"ours: unknown model {name!r}; known: {', '.join(models)}")
+    sq = {n: np.asarray(models[n]["sq_err"], dtype=np.float64) for n in (ours, *rivals)}   # (seeds, horizons, windows)
+    return {n: [paired_ratio(sq[ours][:, j], sq[n][:, j], n_boot=n_boot, seed=seed)
+                for j in range(len(results["horizons"]))] for n in rivals}
 
 
 def provenance_text(results: Mapping[str, Any]) -> str:
