@@ -1,4 +1,4 @@
-"""The committed chapter 4-6 studies in ``results/`` are complete studies of the convergence
+"""The committed chapter 4-7 studies in ``results/`` are complete studies of the convergence
 protocol (issue 21): at least five seeds, the package-source hash, and for every trained model and
 seed the optimizer steps, epochs, learning curve and the stopping rule's verdict; the reference
 rows every table needs are present; and the verdicts agree with the stored curves."""
@@ -61,3 +61,18 @@ def test_every_trained_model_took_steps_and_beats_the_training_mean(study):
             for run in entry["runs"]:
                 assert run["steps"] > 100, (name, model, run["steps"])
                 assert run["best_valid"] < mean_valid, (name, model, run["best_valid"], mean_valid)
+
+
+def test_the_chapter7_study_is_complete():
+    """Chapter 7's closed-loop study: five seeds, Chapter 4's budget, every policy on every task,
+    every planning model trained well past its initialization (more than 100 steps, below the
+    training-mean row of Chapter 4's study on validation)."""
+    from pgm_wm.experiments.planning_study import PLANNING_MODELS, check_planning_study, load_planning_study
+
+    res = load_planning_study(results_path("ch7_memory_arm"))
+    check_planning_study(res, min_seeds=5)
+    assert res["provenance"]["budget_cpu_s"] >= 240 and len(res["tasks"]) >= 16
+    mean_valid = load_results(results_path("ch4_memory_arm"))["models"]["training mean"]["runs"][0]["best_valid"]
+    for name in PLANNING_MODELS:
+        for run in res["training"][name]:
+            assert run["steps"] > 100 and run["best_valid"] < mean_valid, name
