@@ -9,6 +9,10 @@ r"""Evaluation metrics and (de)normalization shared by the model chapters (4, 5,
             + \frac{(y_i-\mu_i)^2}{\sigma_i^2}\Big),
 
   the sum running over the :math:`N` selected (time step, dimension) entries. Lower is better.
+* :func:`interval_coverage` — calibration: the share of the selected entries that fall inside the
+  central band :math:`\mu_i \pm z\sigma_i` of their prediction, Eq. (metric-coverage); a
+  calibrated Gaussian prediction covers :func:`nominal_coverage` :math:`= \operatorname{erf}(z/\sqrt2)`
+  of them (0.954 for :math:`z = 2`), an over-confident one less, an under-confident one more.
 * :func:`normalize` / :func:`denormalize` / :func:`denormalize_var`: map data to and from the
   units the models see, with training-split statistics. Denormalizing the prediction before
   computing a metric gives it in original units (e.g. radians); for the NLL this adds
@@ -34,6 +38,8 @@ from ._checks import as_tensor, check_finite, check_positive, check_same_dtype, 
 __all__ = [
     "rmse",
     "gaussian_nll",
+    "interval_coverage",
+    "nominal_coverage",
     "normalize",
     "denormalize",
     "denormalize_var",
@@ -87,6 +93,29 @@ def gaussian_nll(mean: Tensor, var: Tensor, target: Tensor, mask: Tensor | None 
     terms, w = _nll_terms(mean, var, target), _weights("mask", mask, mean)
     check_finite("target", target.detach()[w.detach() > 0])
     return _reduce(terms, w, dim)
+
+
+def interval_coverage(mean: Tensor, var: Tensor, target: Tensor, z: float = 2.0, mask: Tensor | None = None,
+                      dim: Dims = None) -> Tensor:
+    r"""Share of the selected entries inside the central band of their Gaussian prediction,
+    Eq. (metric-coverage): :math:`\frac1N\sum_i \mathbb 1\big[|y_i - \mu_i| \le z\,\sigma_i\big]`.
+    Compare with :func:`nominal_coverage` (``z = 2``: 0.954). ``var`` must be positive, ``z`` > 0;
+    same masks/dims as :func:`rmse`."""
+    if not (isinstance(z, (int, float)) and not isinstance(z, bool) and math.isfinite(z) and z > 0):
+        raise ValueError(f"z: must be a positive finite number, got {z!r}")
+    _nll_terms(mean, var, target)                      # the same checks as the NLL
+    w = _weights("mask", mask, mean)
+    check_finite("target", target.detach()[w.detach() > 0])
+    inside = ((target - mean).abs() <= z * var.sqrt()).to(mean.dtype)
+    return _reduce(inside, w, dim)
+
+
+def nominal_coverage(z: float = 2.0) -> float:
+    r""":math:`P(|Z| \le z) = \operatorname{erf}(z/\sqrt 2)` for a standard normal :math:`Z`: the
+    coverage Eq. (metric-coverage) of a calibrated Gaussian prediction."""
+    if not (isinstance(z, (int, float)) and not isinstance(z, bool) and math.isfinite(z) and z > 0):
+        raise ValueError(f"z: must be a positive finite number, got {z!r}")
+    return math.erf(z / math.sqrt(2.0))
 
 
 def _nll_terms(mean: Tensor, var: Tensor, target: Tensor) -> Tensor:

@@ -527,3 +527,33 @@ def plot_learning_curves(ax: Any, results: Mapping[str, Any], models: Sequence[s
     ax.set_xlabel("training CPU seconds" if x == "cpu_s" else "optimizer steps")
     ax.set_ylabel("validation RMSE, lowest so far (normalized)")
     ax.grid(alpha=0.3, which="both")
+
+
+__all__ += ["plot_horizon_errors"]
+
+
+def plot_horizon_errors(ax: Any, results: Mapping[str, Any], models: Sequence[str] | None = None,
+                        summary: Mapping[str, Any] | None = None, logy: bool = True) -> None:
+    """RMSE against the prediction horizon ``k`` for ``models`` of a multi-seed results file (all
+    by default): the point estimate as a line, its 95 % interval over seeds and test windows as a
+    band (:func:`pgm_wm.experiments.results.summarize`, computed here unless ``summary`` is
+    given), in the file's units. Reference rows are drawn dashed and without a band."""
+    from .experiments.results import summarize
+
+    summary = summarize(results) if summary is None else summary
+    models = list(results["models"]) if models is None else list(models)
+    unknown = [n for n in models if n not in summary]
+    if unknown:
+        raise ValueError(f"models: not in the results: {unknown}")
+    k = np.asarray(results["horizons"], dtype=float)
+    curves, bands, styles = {}, {}, {}
+    for n in models:
+        ivs = summary[n]["rmse"]
+        curves[n] = np.array([iv.point for iv in ivs])
+        if results["models"][n].get("trained", True):
+            bands[n] = (np.array([iv.lo for iv in ivs]), np.array([iv.hi for iv in ivs]))
+        else:
+            styles[n] = {"ls": "--", "marker": "."}
+    units = f" ({results['units']})" if results.get("units") else ""
+    plot_curves(ax, k, curves, xlabel="prediction horizon k (steps)", ylabel=f"test RMSE{units}", logy=logy,
+                bands=bands, styles=styles)

@@ -397,3 +397,28 @@ def test_stored_models_load_back_to_the_same_predictions(tmp_path):
     assert test_windows(SPLITS, exp.protocol)[0].shape[0] == again.shape[1]
     with pytest.raises(ValueError, match="^name"):
         load_trained(exp, "gru", 4, tmp_path)
+
+
+def test_plot_horizon_errors_draws_the_summary():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pgm_wm.experiments.results import summarize
+    from pgm_wm.plotting import plot_horizon_errors
+
+    rng = np.random.default_rng(1)
+    res = {"horizons": [1, 5, 10], "units": "mrad", "scale": 1e3,
+           "models": {"net": {"trained": True, "sq_err": rng.gamma(2.0, 1e-6, size=(3, 3, 12))},
+                      "arx": {"trained": False, "sq_err": rng.gamma(2.0, 1e-6, size=(3, 3, 12))}}}
+    fig, ax = plt.subplots()
+    plot_horizon_errors(ax, res)
+    lines = {line.get_label(): line for line in ax.lines}
+    s = summarize(res)
+    np.testing.assert_allclose(lines["net"].get_ydata(), [iv.point for iv in s["net"]["rmse"]])
+    assert lines["arx"].get_linestyle() == "--" and len(ax.collections) == 1     # a band for the trained model only
+    assert "mrad" in ax.get_ylabel()
+    with pytest.raises(ValueError, match="^models"):
+        plot_horizon_errors(ax, res, ["lstm"])
+    plt.close(fig)

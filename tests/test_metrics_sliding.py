@@ -70,3 +70,40 @@ def test_sliding_metrics_validate_inputs():
         sliding_window_rmse(p, t, 2, torch.zeros(2, 5, dtype=torch.bool))
     with pytest.raises(ValueError, match="mask"):
         sliding_window_rmse(p, t, 2, torch.ones(2, 4, dtype=torch.bool))
+
+
+def test_interval_coverage_of_calibrated_and_miscalibrated_predictions():
+    """Closed form: draws from the predicted Gaussian are inside mean ± zσ with probability
+    erf(z/√2) (scipy's normal CDF as the independent reference); a variance four times too small
+    (σ halved) covers P(|Z| <= z/2); masks and dims as for rmse, against a numpy count."""
+    from scipy.stats import norm as _norm
+
+    from pgm_wm.metrics import interval_coverage, nominal_coverage
+
+    g = torch.Generator().manual_seed(0)
+    mean = torch.randn(400, 250, 2, generator=g, dtype=torch.float64)
+    var = torch.rand(400, 250, 2, generator=g, dtype=torch.float64) + 0.1
+    target = mean + var.sqrt() * torch.randn(400, 250, 2, generator=g, dtype=torch.float64)
+    for z in (1.0, 2.0):
+        assert nominal_coverage(z) == pytest.approx(_norm.cdf(z) - _norm.cdf(-z), abs=1e-12)
+        assert float(interval_coverage(mean, var, target, z)) == pytest.approx(nominal_coverage(z), abs=3e-3)
+        assert float(interval_coverage(mean, var / 4, target, z)) == pytest.approx(nominal_coverage(z / 2), abs=3e-3)
+    mask = torch.rand(400, 250, generator=g) < 0.3
+    per_t = interval_coverage(mean, var, target, 2.0, mask=mask, dim=(0, 2))
+    inside = (np.abs(target.numpy() - mean.numpy()) <= 2.0 * np.sqrt(var.numpy())) & mask.numpy()[..., None]
+    expected = inside.sum(axis=(0, 2)) / (2 * mask.numpy().sum(axis=0))
+    np.testing.assert_allclose(per_t.numpy(), expected, rtol=1e-12)
+
+
+def test_interval_coverage_bad_inputs_name_the_argument():
+    from pgm_wm.metrics import interval_coverage, nominal_coverage
+
+    m = torch.zeros(2, 3, 1)
+    with pytest.raises(ValueError, match="^var"):
+        interval_coverage(m, torch.zeros(2, 3, 1), m)
+    with pytest.raises(ValueError, match="^z"):
+        interval_coverage(m, torch.ones(2, 3, 1), m, z=0.0)
+    with pytest.raises(ValueError, match="^z"):
+        nominal_coverage(float("nan"))
+    with pytest.raises(ValueError, match="^var"):
+        interval_coverage(m, torch.ones(2, 3, 2), m)
