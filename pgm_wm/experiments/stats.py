@@ -115,27 +115,32 @@ def mean_interval(values: object, n_boot: int = 2000, level: float = 0.95, seed:
     return bootstrap_statistic(values, lambda x: x, n_boot, level, seed)
 
 
-def paired_ratio(sq_err_a: object, sq_err_b: object, n_boot: int = 2000, level: float = 0.95,
-                 seed: int = 0) -> Interval:
-    """Ratio RMSE(a) / RMSE(b) with an interval, windows resampled jointly (paired), seeds of the
-    two models resampled independently. Below 1 means ``a`` has the lower error."""
-    a = _check_values("sq_err_a", sq_err_a)
-    b = _check_values("sq_err_b", sq_err_b)
+def _paired_mean_ratio(names: tuple[str, str], values_a: object, values_b: object, n_boot: int, level: float,
+                       seed: int) -> tuple[float, np.ndarray, float]:
+    """Point ratio mean(a) / mean(b), its bootstrap replicates (windows resampled jointly, seeds
+    independently) and ``alpha``; ``names`` are the arguments' names for the errors."""
+    a = _check_values(names[0], values_a)
+    b = _check_values(names[1], values_b)
     if a.shape[1] != b.shape[1]:
-        raise ValueError(f"sq_err_b: expected {a.shape[1]} windows (same test windows as sq_err_a), "
-                         f"got {b.shape[1]}")
+        raise ValueError(f"{names[1]}: expected {a.shape[1]} windows (the same as {names[0]}), got {b.shape[1]}")
     if (a < 0).any() or (b < 0).any():
-        raise ValueError("sq_err_a: squared errors must be non-negative")
+        raise ValueError(f"{names[0]}: values must be non-negative")
     _check_level(level, n_boot)
     rng = np.random.default_rng(seed)
     windows = rng.integers(0, a.shape[1], size=(n_boot, a.shape[1]))
     ra = _resample_means(a, rng, n_boot, windows)
     rb = _resample_means(b, rng, n_boot, windows)
-    ratio = np.sqrt(ra / np.maximum(rb, np.finfo(np.float64).tiny))
-    alpha = (1.0 - level) / 2.0
-    lo, hi = np.quantile(ratio, [alpha, 1.0 - alpha])
-    point = float(np.sqrt(a.mean() / max(b.mean(), np.finfo(np.float64).tiny)))
-    return Interval(point, float(lo), float(hi))
+    tiny = np.finfo(np.float64).tiny
+    return float(a.mean() / max(b.mean(), tiny)), ra / np.maximum(rb, tiny), (1.0 - level) / 2.0
+
+
+def paired_ratio(sq_err_a: object, sq_err_b: object, n_boot: int = 2000, level: float = 0.95,
+                 seed: int = 0) -> Interval:
+    """Ratio RMSE(a) / RMSE(b) with an interval, windows resampled jointly (paired), seeds of the
+    two models resampled independently. Below 1 means ``a`` has the lower error."""
+    point, reps, alpha = _paired_mean_ratio(("sq_err_a", "sq_err_b"), sq_err_a, sq_err_b, n_boot, level, seed)
+    lo, hi = np.sqrt(np.quantile(reps, [alpha, 1.0 - alpha]))
+    return Interval(float(np.sqrt(point)), float(lo), float(hi))
 
 
 def paired_mean_ratio(values_a: object, values_b: object, n_boot: int = 2000, level: float = 0.95,
@@ -143,19 +148,6 @@ def paired_mean_ratio(values_a: object, values_b: object, n_boot: int = 2000, le
     """Ratio mean(a) / mean(b) of two non-negative per-(seed, window) measures (e.g. closed-loop
     costs per seed and task), paired over windows as :func:`paired_ratio`: windows (tasks) are
     resampled jointly, the two models' seeds independently. Below 1 means ``a`` is lower."""
-    a = _check_values("values_a", values_a)
-    b = _check_values("values_b", values_b)
-    if a.shape[1] != b.shape[1]:
-        raise ValueError(f"values_b: expected {a.shape[1]} windows (the same as values_a), got {b.shape[1]}")
-    if (a < 0).any() or (b < 0).any():
-        raise ValueError("values_a: values must be non-negative")
-    _check_level(level, n_boot)
-    rng = np.random.default_rng(seed)
-    windows = rng.integers(0, a.shape[1], size=(n_boot, a.shape[1]))
-    ra = _resample_means(a, rng, n_boot, windows)
-    rb = _resample_means(b, rng, n_boot, windows)
-    tiny = np.finfo(np.float64).tiny
-    ratio = ra / np.maximum(rb, tiny)
-    alpha = (1.0 - level) / 2.0
-    lo, hi = np.quantile(ratio, [alpha, 1.0 - alpha])
-    return Interval(float(a.mean() / max(b.mean(), tiny)), float(lo), float(hi))
+    point, reps, alpha = _paired_mean_ratio(("values_a", "values_b"), values_a, values_b, n_boot, level, seed)
+    lo, hi = np.quantile(reps, [alpha, 1.0 - alpha])
+    return Interval(point, float(lo), float(hi))
