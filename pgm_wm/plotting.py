@@ -532,18 +532,12 @@ def plot_learning_curves(ax: Any, results: Mapping[str, Any], models: Sequence[s
 __all__ += ["plot_horizon_errors"]
 
 
-def plot_horizon_errors(ax: Any, results: Mapping[str, Any], models: Sequence[str] | None = None,
-                        summary: Mapping[str, Any] | None = None, logy: bool = True) -> None:
+def plot_horizon_errors(ax: Any, results: Mapping[str, Any], models: Sequence[str] | None = None, *,
+                        summary: Mapping[str, Any], logy: bool = True) -> None:
     """RMSE against the prediction horizon ``k`` for ``models`` of a multi-seed results file (all
     by default): the point estimate as a line, its 95 % interval over seeds and test windows as a
-    band (:func:`pgm_wm.experiments.results.summarize`, computed here unless ``summary`` is
-    given), in the file's units. Reference rows are drawn dashed and without a band."""
-    from .experiments.stats import rmse_interval
-
-    if summary is None:        # as pgm_wm.experiments.results.summarize computes it
-        scale = float(results.get("scale", 1.0))
-        summary = {n: {"rmse": [rmse_interval(np.asarray(e["sq_err"], dtype=np.float64)[:, i] * scale**2)
-                                for i in range(len(results["horizons"]))]} for n, e in results["models"].items()}
+    band, both read from ``summary`` (what :func:`pgm_wm.experiments.results.summarize` returns for
+    ``results``), in the file's units. Reference rows are drawn dashed and without a band."""
     models = list(results["models"]) if models is None else list(models)
     unknown = [n for n in models if n not in summary]
     if unknown:

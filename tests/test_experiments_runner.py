@@ -413,12 +413,12 @@ def test_plot_horizon_errors_draws_the_summary():
            "models": {"net": {"trained": True, "sq_err": rng.gamma(2.0, 1e-6, size=(3, 3, 12))},
                       "arx": {"trained": False, "sq_err": rng.gamma(2.0, 1e-6, size=(3, 3, 12))}}}
     fig, ax = plt.subplots()
-    plot_horizon_errors(ax, res)
-    lines = {line.get_label(): line for line in ax.lines}
     s = summarize(res)
+    plot_horizon_errors(ax, res, summary=s)
+    lines = {line.get_label(): line for line in ax.lines}
     np.testing.assert_allclose(lines["net"].get_ydata(), [iv.point for iv in s["net"]["rmse"]])
     assert lines["arx"].get_linestyle() == "--" and len(ax.collections) == 1     # a band for the trained model only
     assert "mrad" in ax.get_ylabel()
     with pytest.raises(ValueError, match="^models"):
-        plot_horizon_errors(ax, res, ["lstm"])
+        plot_horizon_errors(ax, res, ["lstm"], summary=s)
     plt.close(fig)
