@@ -92,6 +92,8 @@ __all__ = [
     "warm_up",
     "ClosedLoopResult",
     "closed_loop",
+    "plan_prediction_errors",
+    "command_statistics",
 ]
 
 
@@ -1270,6 +1272,8 @@ class ClosedLoopResult:
         success: True if ``error`` <= ``tol`` on each of the last ``success_steps`` steps.
         pred_mean, pred_var: ``(steps, H, do)`` the planner's predictions along its plan at each
             step (``None`` for policies that do not expose ``last_plan`` predictions).
+        plan_actions: ``(steps, H, da)`` the plan chosen at each step, whose first action was sent
+            (``None`` like ``pred_mean``); :func:`plan_prediction_errors` replays them.
         states: the simulator states after each action (``steps`` entries).
     """
 
@@ -1282,6 +1286,7 @@ class ClosedLoopResult:
     success: bool
     pred_mean: Tensor | None
     pred_var: Tensor | None
+    plan_actions: Tensor | None
     states: list = field(repr=False)
 
 
@@ -1331,7 +1336,7 @@ def closed_loop(env: Env, policy: Callable[..., Tensor], state: Any, obs_history
     H = int(getattr(policy, "horizon", 1))
     tracked = cost.obs_weight > 0
     obs_list, act_list = [obs[i] for i in range(obs.shape[0])], [act[i] for i in range(act.shape[0])]
-    step_cost, errors, states, p_mean, p_var = [], [], [], [], []
+    step_cost, errors, states, p_mean, p_var, p_act = [], [], [], [], [], []
     for t in range(steps):
         window = tg[torch.clamp(torch.arange(t, t + H), max=steps - 1)]
         a = policy(torch.stack(obs_list), torch.stack(act_list) if act_list else act[:0], window, state)
@@ -1343,6 +1348,7 @@ def closed_loop(env: Env, policy: Callable[..., Tensor], state: Any, obs_history
         plan = getattr(policy, "last_plan", None)
         if isinstance(plan, PlanResult):
             p_mean.append(plan.mean.to(torch.float64)), p_var.append(plan.var.to(torch.float64))
+            p_act.append(plan.actions.to(torch.float64))
         step_cost.append(cost(o[None, None], torch.zeros(1, 1, do, dtype=torch.float64), a[None, None], tg[t][None])[0])
         errors.append((o - tg[t]).abs()[tracked].max())
         obs_list.append(o), act_list.append(a), states.append(state)
@@ -1352,4 +1358,32 @@ def closed_loop(env: Env, policy: Callable[..., Tensor], state: Any, obs_history
         obs=torch.stack(obs_list[obs.shape[0] - 1:]), actions=torch.stack(act_list[act.shape[0]:]), targets=tg.clone(),
         step_cost=sc, total_cost=float(sc.sum()), error=err, success=bool((err[-success_steps:] <= tol).all()),
         pred_mean=torch.stack(p_mean) if len(p_mean) == steps else None,
-        pred_var=torch.stack(p_var) if len(p_var) == steps else None, states=states)
+        pred_var=torch.stack(p_var) if len(p_var) == steps else None,
+        plan_actions=torch.stack(p_act) if len(p_act) == steps else None, states=states)
+
+
+def plan_prediction_errors(env: Env, run: ClosedLoopResult, state: Any) -> np.ndarray:
+    r"""How wrong the planner's model was about the plans it chose: ``(steps, H, do)`` errors
+    :math:`\hat o_{t+k\mid t} - o^{\text{sim}}_{t+k}` of the prediction ``run.pred_mean[t]`` along
+    the plan ``run.plan_actions[t]``, against that plan replayed open loop in ``env`` from the true
+    state in which it was made (``state`` for the first plan, ``run.states[t - 1]`` after that).
+    A planner through the simulator itself scores zero (up to the observation noise of the run)."""
+    if not isinstance(run, ClosedLoopResult):
+        raise ValueError(f"run: expected a ClosedLoopResult, got {type(run).__name__}")
+    if run.plan_actions is None or run.pred_mean is None:
+        raise ValueError("run: its policy exposed no plans (run.plan_actions is None)")
+    starts = [state, *run.states[:-1]]
+    return np.stack([run.pred_mean[t].numpy() - env.rollout(starts[t], run.plan_actions[t][None].numpy())[0]
+                     for t in range(len(starts))])
+
+
+def command_statistics(actions: object, near: float = 0.9) -> tuple[float, float]:
+    r"""Two numbers that say how a command sequence looks: the mean absolute change per step,
+    :math:`\operatorname{mean}|a_t - a_{t-1}|`, and the share of entries with :math:`|a| >` ``near``
+    (close to the bounds of a box [-1, 1]). ``actions``: ``(..., T, da)`` with ``T >= 2``."""
+    a = _as_float("actions", actions, torch.float64)
+    if a.ndim < 2 or a.shape[-2] < 2:
+        raise ValueError(f"actions: expected (..., T, da) with T >= 2, got shape {tuple(a.shape)}")
+    if not (isinstance(near, (int, float)) and near > 0):
+        raise ValueError(f"near: must be > 0, got {near!r}")
+    return float((a[..., 1:, :] - a[..., :-1, :]).abs().mean()), float((a.abs() > near).double().mean())

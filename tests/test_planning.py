@@ -30,6 +30,8 @@ from pgm_wm.datasets.memory_arm import initial_state, rollout_memory_arm
 from pgm_wm.datasets.two_link_arm import rollout_two_link_arm
 from pgm_wm.planning import (
     ARXLQRPolicy,
+    command_statistics,
+    plan_prediction_errors,
     ConstantPolicy,
     LinearEnv,
     MemoryArmEnv,
@@ -689,6 +691,49 @@ def test_physics_planner_on_the_memory_arm():
     zero = closed_loop(env, ConstantPolicy([0.0, 0.0]), state, oh, ah, target, 40, cost, tol=0.02, success_steps=5)
     assert res.success and not zero.success
     assert res.total_cost < 0.5 * zero.total_cost
+    # the plans are kept, their first actions are the ones sent, and the simulator is exact about them
+    assert res.plan_actions.shape == (40, 10, 2) and zero.plan_actions is None
+    torch.testing.assert_close(res.plan_actions[:, 0], res.actions, rtol=0, atol=0)
+    assert np.abs(plan_prediction_errors(env, res, state)).max() < 1e-10
+
+
+def test_plan_prediction_errors_of_a_wrong_linear_model_by_hand():
+    """A planner through a model with the wrong input matrix: the errors along its plans equal the
+    difference of the two linear recursions, written out here with numpy."""
+    env = LinearEnv(A_DI, B_DI)
+    B_wrong = 0.6 * np.asarray(B_DI)
+    cost = QuadraticCost(torch.as_tensor(W_DI), torch.as_tensor(R_DI))
+    planner = SamplingPlanner(linear_predictor(A_DI, B_wrong), cost, 4, -3.0, 3.0, n_samples=16, n_iters=2, seed=0)
+    res = closed_loop(env, planner, X0_DI, torch.as_tensor(X0_DI)[None], torch.zeros(0, 1, dtype=DT),
+                      TARGET_DI, 6, cost, tol=1.0)
+    err = plan_prediction_errors(env, res, X0_DI)
+    assert err.shape == (6, 4, 2)
+    x_true = [np.asarray(X0_DI, dtype=float)] + [np.asarray(x, dtype=float) for x in res.states[:-1]]
+    for t in range(6):
+        u = res.plan_actions[t].numpy()
+        xm = xs = x_true[t]
+        for k in range(4):
+            xm, xs = np.asarray(A_DI) @ xm + B_wrong @ u[k], np.asarray(A_DI) @ xs + np.asarray(B_DI) @ u[k]
+            np.testing.assert_allclose(err[t, k], xm - xs, rtol=1e-9, atol=1e-12)
+    assert np.abs(err).max() > 1e-3                    # the wrong model is wrong
+    zero = closed_loop(env, ConstantPolicy([0.0]), X0_DI, torch.as_tensor(X0_DI)[None], torch.zeros(0, 1, dtype=DT),
+                       TARGET_DI, 3, cost, tol=1.0)
+    with pytest.raises(ValueError, match="^run:"):
+        plan_prediction_errors(env, zero, X0_DI)
+
+
+def test_command_statistics_against_numpy():
+    a = np.random.default_rng(0).uniform(-1, 1, size=(3, 20, 2))
+    change, near = command_statistics(a)
+    assert change == pytest.approx(np.abs(np.diff(a, axis=1)).mean(), rel=1e-12)
+    assert near == pytest.approx((np.abs(a) > 0.9).mean(), rel=1e-12)
+    assert command_statistics(a[0], near=0.5)[1] == pytest.approx((np.abs(a[0]) > 0.5).mean())
+    with pytest.raises(ValueError, match="^actions:"):
+        command_statistics(a[:, :1])
+    with pytest.raises(ValueError, match="^actions:"):
+        command_statistics(np.full((4, 2), np.nan))
+    with pytest.raises(ValueError, match="^near:"):
+        command_statistics(a, near=0.0)
 
 
 def test_model_predictors_never_receive_the_true_state():

@@ -138,7 +138,8 @@ def _train_one(task: tuple[str, int, float, int | None]) -> tuple[str, int, dict
 
 def _plan_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[str, Any]]) -> tuple[int, dict[str, Any]]:
     from ..planning import (ARXLQRPolicy, ConstantPolicy, MemoryArmEnv, QuadraticCost, RandomPolicy, SamplingPlanner,
-                            closed_loop, simulator_predictor, warm_up, world_model_predictor)
+                            closed_loop, command_statistics, plan_prediction_errors, simulator_predictor, warm_up,
+                            world_model_predictor)
     from ..training import set_seed
     from .chapters import ch4_experiment
 
@@ -171,8 +172,7 @@ def _plan_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[str, An
                                   "near_bounds": [], "onplan_rmse": [], "wall_s": 0.0} for name in POLICIES}
     # the commands of the training split, for comparison with the planners' commands
     a_tr = splits.train.actions.double()
-    out["_data_commands"] = {"command_change": float((a_tr[:, 1:] - a_tr[:, :-1]).abs().mean()),
-                             "near_bounds": float((a_tr.abs() > 0.9).double().mean())}
+    out["_data_commands"] = dict(zip(("command_change", "near_bounds"), command_statistics(a_tr)))
     for i, target in enumerate(tasks):
         sampler_seed = 1000 * seed + i
 
@@ -186,7 +186,7 @@ def _plan_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[str, An
                     "zero commands": ConstantPolicy(np.zeros(env.action_dim)),
                     "random commands": RandomPolicy(env.action_low, env.action_high, seed=sampler_seed)}
         for name in POLICIES:
-            policy = _Recorder(policies[name]) if name.startswith("CEM") else policies[name]
+            policy = policies[name]
             t0 = time.perf_counter()
             run = closed_loop(env, policy, state0, oh0, ah0, target, p.steps, cost, tol=p.tol,
                               success_steps=p.success_steps)
@@ -194,34 +194,16 @@ def _plan_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[str, An
             out[name]["cost"].append(run.total_cost)
             out[name]["success"].append(float(run.success))
             out[name]["final_error"].append(float(run.error[-10:].mean()))
-            a = run.actions
-            out[name]["command_change"].append(float((a[1:] - a[:-1]).abs().mean()))
-            out[name]["near_bounds"].append(float((a.abs() > 0.9).double().mean()))
-            if isinstance(policy, _Recorder):
-                # the model's k-step prediction error along the plans it chose: every plan replayed in
+            change, near = command_statistics(run.actions)
+            out[name]["command_change"].append(change)
+            out[name]["near_bounds"].append(near)
+            if run.plan_actions is not None:
+                # the model's k-step prediction error along the plans it chose, each plan replayed in
                 # the simulator from the true state where it was made
-                starts = [state0, *run.states[:-1]]
-                err = np.stack([run.pred_mean[t].numpy() - env.rollout(starts[t], plan[None].numpy())[0]
-                                for t, plan in enumerate(policy.plans)])
+                err = plan_prediction_errors(env, run, state0)
                 out[name]["onplan_rmse"].append(np.sqrt((err ** 2).mean(axis=(0, 2))).tolist())
     out["_arx_order"] = arx.order
     return seed, out
-
-
-class _Recorder:
-    """Passes every call to a planner and keeps the plan (action sequence) it chose."""
-
-    def __init__(self, planner: Any) -> None:
-        self.planner, self.horizon, self.plans = planner, planner.horizon, []
-
-    @property
-    def last_plan(self) -> Any:
-        return self.planner.last_plan
-
-    def __call__(self, *args: Any) -> torch.Tensor:
-        action = self.planner(*args)
-        self.plans.append(self.planner.last_plan.actions.clone())
-        return action
 
 
 def _pool_map(fn: Any, tasks: list, jobs: int) -> list:
