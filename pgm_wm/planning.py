@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Callable, Literal, Mapping, Protocol
+from typing import Any, Callable, Literal, Mapping, Protocol, Sequence
 
 import numpy as np
 import torch
@@ -81,6 +81,7 @@ __all__ = [
     "SamplingPlanner",
     "world_model_predictor",
     "linear_predictor",
+    "ensemble_predictor",
     # 3. closed loop
     "Env",
     "LinearEnv",
@@ -987,6 +988,41 @@ def linear_predictor(A: object, B: object, c: object | None = None, process_var:
             means.append(x)
             variances.append(torch.diagonal(cov).expand_as(x))
         return torch.stack(means, 1).to(dtype), torch.stack(variances, 1).to(dtype)
+
+    return predict
+
+
+def ensemble_predictor(predictors: Sequence[Callable[..., tuple[Tensor, Tensor]]]
+                       ) -> Callable[..., tuple[Tensor, Tensor]]:
+    r"""Several models as one :class:`Predictor`: the moments of their equal-weight mixture, Eq. (plan-ensemble),
+
+    .. math:: \bar\mu = \frac1M\sum_{m=1}^M \mu_m, \qquad
+              \bar\sigma^2 = \frac1M\sum_{m=1}^M \sigma_m^2 + \frac1M\sum_{m=1}^M (\mu_m - \bar\mu)^2,
+
+    per candidate, step and dimension. The first term is the models' own predicted variance; the
+    second is their disagreement, a variance that can grow where models trained from different seeds
+    extrapolate differently: the epistemic part that Chapter 7, Section 7.5 found missing from a
+    single model's variance (whether it keeps a risk-averse planner near the data is not measured
+    there). Every predictor must return
+    predictions of the same shape. The true simulator (``needs_state``) is not a model and is refused.
+    """
+    preds = list(predictors) if isinstance(predictors, (list, tuple)) else None
+    if preds is None or len(preds) < 2:
+        raise ValueError(f"predictors: expected a list or tuple of at least two predictors, got {predictors!r}")
+    for i, p in enumerate(preds):
+        if not callable(p):
+            raise ValueError(f"predictors[{i}]: expected a callable predictor, got {type(p).__name__}")
+        if getattr(p, "needs_state", False):
+            raise ValueError(f"predictors[{i}]: needs the simulator's state; an ensemble mixes models only")
+
+    def predict(obs_history: Tensor, action_history: Tensor, candidates: Tensor) -> tuple[Tensor, Tensor]:
+        outs = [p(obs_history, action_history, candidates) for p in preds]
+        shapes = {tuple(t.shape) for out in outs for t in out}
+        if len(shapes) != 1:
+            raise ValueError(f"predictors: their means and variances differ in shape: {sorted(shapes)}")
+        means = torch.stack([m for m, _ in outs])
+        mean = means.mean(0)
+        return mean, torch.stack([v for _, v in outs]).mean(0) + (means - mean).square().mean(0)
 
     return predict
 

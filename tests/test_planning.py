@@ -31,6 +31,7 @@ from pgm_wm.datasets.two_link_arm import rollout_two_link_arm
 from pgm_wm.planning import (
     ARXLQRPolicy,
     command_statistics,
+    ensemble_predictor,
     plan_prediction_errors,
     ConstantPolicy,
     LinearEnv,
@@ -720,6 +721,48 @@ def test_plan_prediction_errors_of_a_wrong_linear_model_by_hand():
                        TARGET_DI, 3, cost, tol=1.0)
     with pytest.raises(ValueError, match="^run:"):
         plan_prediction_errors(env, zero, X0_DI)
+
+
+def test_ensemble_predictor_is_the_mixture_of_two_linear_models():
+    """Two linear-Gaussian models with different input matrices and process noises: the ensemble's
+    mean and variance are the moments of their equal-weight mixture, computed here with numpy from
+    the mixture's definition E[o^2] - E[o]^2; an ensemble of one model with itself is that model."""
+    A = np.array([[0.9, 0.1], [0.0, 0.8]])
+    B1, B2 = np.array([[0.5], [1.0]]), np.array([[0.2], [1.5]])
+    w1, w2 = np.array([1e-2, 2e-2]), np.array([3e-2, 1e-3])
+    p1, p2 = linear_predictor(A, B1, process_var=w1), linear_predictor(A, B2, process_var=w2)
+    gen = torch.Generator().manual_seed(0)
+    obs, act = torch.randn(3, 2, generator=gen, dtype=DT), torch.randn(2, 1, generator=gen, dtype=DT)
+    cand = torch.randn(5, 4, 1, generator=gen, dtype=DT)
+    mean, var = ensemble_predictor([p1, p2])(obs, act, cand)
+    (m1, v1), (m2, v2) = (tuple(t.numpy() for t in p(obs, act, cand)) for p in (p1, p2))
+    second_moment = 0.5 * ((v1 + m1 ** 2) + (v2 + m2 ** 2))
+    np.testing.assert_allclose(mean.numpy(), 0.5 * (m1 + m2), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(var.numpy(), second_moment - (0.5 * (m1 + m2)) ** 2, rtol=1e-9, atol=1e-14)
+    assert (var.numpy() >= 0.5 * (v1 + v2)).all()        # disagreement only adds variance
+    same_mean, same_var = ensemble_predictor((p1, p1))(obs, act, cand)
+    torch.testing.assert_close(same_mean, torch.as_tensor(m1), rtol=0, atol=0)
+    torch.testing.assert_close(same_var, torch.as_tensor(v1), rtol=0, atol=0)
+    # inside the planner, an ensemble of one model with itself plans exactly like the model
+    cost = QuadraticCost(torch.ones(2, dtype=DT), torch.full((1,), 0.1, dtype=DT), risk=1.0)
+    plans = [SamplingPlanner(p, cost, 4, -2.0, 2.0, n_samples=16, n_iters=2, seed=3).plan(obs, act, torch.zeros(4, 2, dtype=DT))
+             for p in (p1, ensemble_predictor([p1, p1]))]
+    torch.testing.assert_close(plans[0].actions, plans[1].actions, rtol=0, atol=0)
+
+
+def test_ensemble_predictor_input_errors():
+    p = linear_predictor(A_DI, B_DI)
+    for bad in ([p], [], p, "p"):
+        with pytest.raises(ValueError, match="^predictors:"):
+            ensemble_predictor(bad)
+    with pytest.raises(ValueError, match=r"^predictors\[1\]:"):
+        ensemble_predictor([p, 3])
+    with pytest.raises(ValueError, match=r"^predictors\[0\]:"):
+        ensemble_predictor([simulator_predictor(LinearEnv(A_DI, B_DI)), p])
+    wide = linear_predictor(np.eye(3), np.ones((3, 1)))
+    obs = torch.zeros(2, 2, dtype=DT)
+    with pytest.raises(ValueError, match="^predictors:"):
+        ensemble_predictor([p, lambda o, a, c: wide(torch.zeros(2, 3, dtype=DT), a, c)])(obs, obs[:1, :1], torch.zeros(4, 3, 1, dtype=DT))
 
 
 def test_command_statistics_against_numpy():
