@@ -3,7 +3,8 @@
 ``results/NAME.json`` (see :mod:`pgm_wm.experiments.runner`); ``python -m pgm_wm.experiments merge
 OUT PART...`` merges parts run with different seeds; ``python -m pgm_wm.experiments ch7 [--seeds 5] [--budget 240]
 [--jobs 2] [--tasks 16] [--out F] [--force]`` runs Chapter 7's closed-loop planning study
-(:mod:`pgm_wm.experiments.planning_study`). Every argument and the output path are checked before any
+(:mod:`pgm_wm.experiments.planning_study`), ``ch7_payload`` (same options, ``--tasks`` per payload
+regime) its payload study. Every argument and the output path are checked before any
 training; the file is written atomically; a committed results file is only replaced with
 ``--force``."""
 
@@ -59,44 +60,57 @@ def merge_main(argv: list[str]) -> int:
     return 0
 
 
-def ch7_main(argv: list[str]) -> int:
-    """``python -m pgm_wm.experiments ch7 ...``: Chapter 7's closed-loop study
-    (:func:`pgm_wm.experiments.planning_study.run_planning_study`), written to
-    ``results/ch7_memory_arm.json`` unless ``--out`` says otherwise."""
-    from .planning_study import PlanningProtocol, planning_ratios, planning_table, run_planning_study
+def ch7_main(argv: list[str], study: str = "ch7") -> int:
+    """``python -m pgm_wm.experiments ch7 ...``: Chapter 7's closed-loop study on the memory arm
+    (:func:`pgm_wm.experiments.planning_study.run_planning_study`, ``results/ch7_memory_arm.json``);
+    ``python -m pgm_wm.experiments ch7_payload ...``: its payload study
+    (:func:`pgm_wm.experiments.planning_study.run_payload_study`, ``results/ch7_payload_arm.json``),
+    unless ``--out`` says otherwise."""
+    from .planning_study import (PayloadProtocol, PlanningProtocol, planning_ratios, planning_table,
+                                 run_payload_study, run_planning_study)
 
-    parser = argparse.ArgumentParser(prog="python -m pgm_wm.experiments ch7", description=ch7_main.__doc__)
+    payload = study == "ch7_payload"
+    proto_cls = PayloadProtocol if payload else PlanningProtocol
+    default_out = "ch7_payload_arm.json" if payload else "ch7_memory_arm.json"
+    parser = argparse.ArgumentParser(prog=f"python -m pgm_wm.experiments {study}", description=ch7_main.__doc__)
     parser.add_argument("--seeds", type=_positive_int, default=5, help="number of seeds; default 5")
     parser.add_argument("--seed-start", type=int, default=0, help="first seed (default 0)")
     parser.add_argument("--budget", type=_budget, default=240.0,
-                        help="CPU seconds of training per model and seed (default 240, Chapter 4's study)")
+                        help="CPU seconds of training per model and seed (default 240, the chapters' studies)")
     parser.add_argument("--max-steps", type=_positive_int, default=None, help="also stop training after this many steps")
-    parser.add_argument("--tasks", type=_positive_int, default=PlanningProtocol.n_tasks, help="targets per seed")
-    parser.add_argument("--steps", type=_positive_int, default=PlanningProtocol.steps, help="control steps per task")
+    if payload:
+        parser.add_argument("--tasks", type=_positive_int, default=PayloadProtocol.n_per_regime,
+                            help="tasks per payload regime")
+    else:
+        parser.add_argument("--tasks", type=_positive_int, default=PlanningProtocol.n_tasks, help="targets per seed")
+    parser.add_argument("--steps", type=_positive_int, default=proto_cls.steps, help="control steps per task")
     parser.add_argument("--jobs", type=_positive_int, default=1,
                         help=f"parallel processes (each one thread); at most {os.cpu_count() or 1} here")
-    parser.add_argument("--out", default=None, help="output file (default results/ch7_memory_arm.json)")
+    parser.add_argument("--out", default=None, help=f"output file (default results/{default_out})")
     parser.add_argument("--force", action="store_true", help="overwrite a committed results file")
     args = parser.parse_args(argv)
     if args.jobs > (os.cpu_count() or 1):
         parser.error(f"argument --jobs: {args.jobs} processes but this machine has {os.cpu_count()} CPUs")
     if args.seed_start < 0:
         parser.error("argument --seed-start: must be >= 0")
-    out = args.out or str(Path(__file__).resolve().parents[2] / "results" / "ch7_memory_arm.json")
+    out = args.out or str(Path(__file__).resolve().parents[2] / "results" / default_out)
     try:
         check_output_path(out, force=args.force)
-        protocol = PlanningProtocol(n_tasks=args.tasks, steps=args.steps,
-                                    success_steps=min(PlanningProtocol.success_steps, args.steps))
+        steps = dict(steps=args.steps, success_steps=min(proto_cls.success_steps, args.steps))
+        protocol = (PayloadProtocol(n_per_regime=args.tasks, **steps) if payload
+                    else PlanningProtocol(n_tasks=args.tasks, **steps))
     except ValueError as err:
         parser.error(f"argument --out: {err}" if "out" in str(err)[:4] else str(err))
-    res = run_planning_study(range(args.seed_start, args.seed_start + args.seeds), args.budget, out,
-                             protocol=protocol, jobs=args.jobs, max_steps=args.max_steps)
+    run = run_payload_study if payload else run_planning_study
+    res = run(range(args.seed_start, args.seed_start + args.seeds), args.budget, out,  # type: ignore[operator]
+              protocol=protocol, jobs=args.jobs, max_steps=args.max_steps)
     for name, row in planning_table(res, n_boot=500).items():
-        print(f"{name:28s} cost {row['cost'].format()}  success {row['success'].format('.2f')}  "
+        print(f"{name:32s} cost {row['cost'].format()}  success {row['success'].format('.2f')}  "
               f"final error {row['final_error'].format('.3g', 1e3)} mrad")
-    for rival, iv in planning_ratios(res, "CEM through the ac-RKN", ["CEM through the ARX model", "CEM through the GRU"],
-                                     n_boot=500).items():
-        print(f"cost ratio ac-RKN / {rival}: {iv.format()}")
+    policy, rivals = (("CEM through the HiP-RSSM", ["CEM through the ac-RKN", "CEM + true-payload simulator"])
+                      if payload else ("CEM through the ac-RKN", ["CEM through the ARX model", "CEM through the GRU"]))
+    for rival, iv in planning_ratios(res, policy, rivals, n_boot=500).items():
+        print(f"cost ratio {policy} / {rival}: {iv.format()}")
     print(f"written: {out}")
     return 0
 
@@ -105,8 +119,8 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] == "merge":
         return merge_main(argv[1:])
-    if argv and argv[0] == "ch7":
-        return ch7_main(argv[1:])
+    if argv and argv[0] in ("ch7", "ch7_payload"):
+        return ch7_main(argv[1:], argv[0])
     parser = argparse.ArgumentParser(prog="python -m pgm_wm.experiments", description=__doc__)
     parser.add_argument("name", choices=sorted(EXPERIMENTS), help="which chapter's experiment")
     parser.add_argument("--seeds", type=_positive_int, default=5, help="number of seeds; default 5")

@@ -30,6 +30,13 @@ the wall time per seed, and, per trained model and seed, the training
 record of Chapter 4's runner (steps, CPU seconds, best validation RMSE, the stopping rule's
 verdict). :func:`planning_table` and :func:`planning_ratios` compute the chapter's tables from it
 with the intervals of :mod:`pgm_wm.experiments.stats` (tasks as windows, paired over tasks).
+
+A second study, ``python -m pgm_wm.experiments ch7_payload --seeds 5 --budget 240 --jobs 2``
+(:func:`run_payload_study`, ``results/ch7_payload_arm.json``, Chapter 7, Section 7.6), plans on the
+vertical payload arm with payloads the models never trained on: the HiP-RSSM of Chapter 5, whose task
+is inferred from the previous window of interaction, against the task-blind Chapter 4 ac-RKN and the
+simulator with the true and with the nominal payload. Its files have the same layout (plus
+``payloads`` and ``regimes``), so the same tables read them.
 """
 
 from __future__ import annotations
@@ -51,7 +58,8 @@ from .results import provenance, write_json
 from .stats import Interval, mean_interval, paired_mean_ratio
 
 __all__ = ["PlanningProtocol", "PLANNING_MODELS", "POLICIES", "fit_arx", "planning_tasks", "run_planning_study",
-           "check_planning_study", "load_planning_study", "planning_table", "planning_ratios"]
+           "PayloadProtocol", "PAYLOAD_MODELS", "PAYLOAD_POLICIES", "PAYLOAD_REGIMES", "payload_tasks",
+           "run_payload_study", "check_planning_study", "load_planning_study", "planning_table", "planning_ratios"]
 
 PLANNING_MODELS = ("ac-RKN (difference readout)", "GRU")
 """The trained models of Chapter 4's study that the study plans through."""
@@ -126,34 +134,84 @@ def planning_tasks(train: Any, n_tasks: int, seed: int) -> np.ndarray:
     return np.random.default_rng(seed).uniform(lo, hi, size=(n_tasks, obs.shape[1]))
 
 
-def _train_one(task: tuple[str, int, float, int | None]) -> tuple[str, int, dict[str, torch.Tensor], dict[str, Any]]:
-    from .chapters import ch4_experiment
+def _experiment(which: str) -> Any:
+    """The chapter experiment whose models a study plans through: Chapter 4's on the memory arm
+    (``"ch4"``) or Chapter 5's on the vertical payload arm (``"ch5_payload"``)."""
+    from .chapters import ch4_experiment, ch5_experiment
+
+    return ch4_experiment("memory_arm") if which == "ch4" else ch5_experiment("payload_arm")
+
+
+def _train_one(task: tuple[str, str, int, float, int | None]
+               ) -> tuple[str, int, dict[str, torch.Tensor], dict[str, Any]]:
     from .runner import train_model
 
     torch.set_num_threads(1)
-    name, seed, budget_s, max_steps = task
-    model, info = train_model(ch4_experiment("memory_arm"), name, seed, budget_s, max_steps=max_steps)
+    which, name, seed, budget_s, max_steps = task
+    model, info = train_model(_experiment(which), name, seed, budget_s, max_steps=max_steps)
     return name, seed, {k: v.detach().clone() for k, v in model.state_dict().items()}, info
 
 
-def _plan_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[str, Any]]) -> tuple[int, dict[str, Any]]:
-    from ..planning import (ARXLQRPolicy, ConstantPolicy, MemoryArmEnv, QuadraticCost, RandomPolicy, SamplingPlanner,
-                            closed_loop, command_statistics, plan_prediction_errors, simulator_predictor, warm_up,
-                            world_model_predictor)
-    from ..training import set_seed
-    from .chapters import ch4_experiment
+def _train_models(which: str, names: Sequence[str], seeds: list[int], budget_s: float, max_steps: int | None,
+                  jobs: int) -> tuple[dict[int, dict[str, dict[str, torch.Tensor]]], dict[str, list[dict[str, Any]]]]:
+    """Train every model of ``names`` for every seed (``jobs`` processes); returns the parameters
+    per seed and model and the training records per model (in seed order)."""
+    trained = _pool_map(_train_one, [(which, n, s, float(budget_s), max_steps) for s in seeds for n in names], jobs)
+    states: dict[int, dict[str, dict[str, torch.Tensor]]] = {s: {} for s in seeds}
+    training: dict[str, list[dict[str, Any]]] = {n: [None] * len(seeds) for n in names}  # type: ignore[list-item]
+    for name, seed, state, info in trained:
+        states[seed][name] = state
+        training[name][seeds.index(seed)] = info
+    return states, training
 
-    torch.set_num_threads(1)
-    seed, states, cfg = task
-    p = PlanningProtocol(**cfg["protocol"])
-    exp = ch4_experiment("memory_arm")
-    splits = exp.load()
+
+def _load_models(exp: Any, splits: Any, states: Mapping[str, Mapping[str, torch.Tensor]], seed: int
+                 ) -> dict[str, nn.Module]:
+    from ..training import set_seed
+
     models = {}
     for name, state in states.items():
         set_seed(seed)
         m = exp.models[name].build(splits)
         m.load_state_dict(state)
         models[name] = m.eval()
+    return models
+
+
+def _empty_record(policies: Sequence[str]) -> dict[str, Any]:
+    return {name: {"cost": [], "success": [], "final_error": [], "command_change": [], "near_bounds": [],
+                   "onplan_rmse": [], "wall_s": 0.0} for name in policies}
+
+
+def _record_run(entry: dict[str, Any], env: Any, run: Any, state0: Any, wall_s: float) -> None:
+    """Append one closed-loop run's scores to a policy's record: true cost, success, final error
+    (mean over the last 10 steps), command statistics and, for planners, the RMSE of the model's
+    predictions along the plans it chose (every plan replayed in the simulator from the true
+    state where it was made)."""
+    from ..planning import command_statistics, plan_prediction_errors
+
+    entry["wall_s"] += wall_s
+    entry["cost"].append(run.total_cost)
+    entry["success"].append(float(run.success))
+    entry["final_error"].append(float(run.error[-10:].mean()))
+    change, near = command_statistics(run.actions)
+    entry["command_change"].append(change)
+    entry["near_bounds"].append(near)
+    if run.plan_actions is not None:
+        err = plan_prediction_errors(env, run, state0)
+        entry["onplan_rmse"].append(np.sqrt((err ** 2).mean(axis=(0, 2))).tolist())
+
+
+def _plan_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[str, Any]]) -> tuple[int, dict[str, Any]]:
+    from ..planning import (ARXLQRPolicy, ConstantPolicy, MemoryArmEnv, QuadraticCost, RandomPolicy, SamplingPlanner,
+                            closed_loop, command_statistics, simulator_predictor, warm_up, world_model_predictor)
+
+    torch.set_num_threads(1)
+    seed, states, cfg = task
+    p = PlanningProtocol(**cfg["protocol"])
+    exp = _experiment("ch4")
+    splits = exp.load()
+    models = _load_models(exp, splits, states, seed)
     arx = fit_arx(splits.train, splits.valid)
     env = MemoryArmEnv()
     state0, oh0, ah0 = warm_up(env, env.initial_state(), np.zeros((p.context - 1, env.action_dim)))
@@ -168,8 +226,7 @@ def _plan_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[str, An
                   "CEM through the GRU": world_model_predictor(models[PLANNING_MODELS[1]], stats,
                                                                context_len=p.model_context)}
     tasks = np.asarray(cfg["tasks"], dtype=np.float64)
-    out: dict[str, Any] = {name: {"cost": [], "success": [], "final_error": [], "command_change": [],
-                                  "near_bounds": [], "onplan_rmse": [], "wall_s": 0.0} for name in POLICIES}
+    out: dict[str, Any] = _empty_record(POLICIES)
     # the commands of the training split, for comparison with the planners' commands
     a_tr = splits.train.actions.double()
     out["_data_commands"] = dict(zip(("command_change", "near_bounds"), command_statistics(a_tr)))
@@ -190,18 +247,7 @@ def _plan_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[str, An
             t0 = time.perf_counter()
             run = closed_loop(env, policy, state0, oh0, ah0, target, p.steps, cost, tol=p.tol,
                               success_steps=p.success_steps)
-            out[name]["wall_s"] += time.perf_counter() - t0
-            out[name]["cost"].append(run.total_cost)
-            out[name]["success"].append(float(run.success))
-            out[name]["final_error"].append(float(run.error[-10:].mean()))
-            change, near = command_statistics(run.actions)
-            out[name]["command_change"].append(change)
-            out[name]["near_bounds"].append(near)
-            if run.plan_actions is not None:
-                # the model's k-step prediction error along the plans it chose, each plan replayed in
-                # the simulator from the true state where it was made
-                err = plan_prediction_errors(env, run, state0)
-                out[name]["onplan_rmse"].append(np.sqrt((err ** 2).mean(axis=(0, 2))).tolist())
+            _record_run(out[name], env, run, state0, time.perf_counter() - t0)
     out["_arx_order"] = arx.order
     return seed, out
 
@@ -213,6 +259,15 @@ def _pool_map(fn: Any, tasks: list, jobs: int) -> list:
         return pool.map(fn, tasks, chunksize=1)
 
 
+def _check_run_args(seeds: Sequence[int], budget_s: float) -> list[int]:
+    seeds = [int(s) for s in seeds]
+    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+        raise ValueError(f"seeds: need distinct non-negative seeds, got {seeds}")
+    if not (isinstance(budget_s, (int, float)) and math.isfinite(budget_s) and budget_s > 0):
+        raise ValueError(f"budget_s: must be a positive finite number of CPU seconds, got {budget_s!r}")
+    return seeds
+
+
 def run_planning_study(seeds: Sequence[int], budget_s: float, out_path: str | None = None, *,
                        protocol: PlanningProtocol | None = None, jobs: int = 1,
                        max_steps: int | None = None) -> dict[str, Any]:
@@ -222,21 +277,11 @@ def run_planning_study(seeds: Sequence[int], budget_s: float, out_path: str | No
     from .chapters import ch4_experiment
 
     p = protocol or PlanningProtocol()
-    seeds = [int(s) for s in seeds]
-    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
-        raise ValueError(f"seeds: need distinct non-negative seeds, got {seeds}")
-    if not (isinstance(budget_s, (int, float)) and math.isfinite(budget_s) and budget_s > 0):
-        raise ValueError(f"budget_s: must be a positive finite number of CPU seconds, got {budget_s!r}")
+    seeds = _check_run_args(seeds, budget_s)
     wall0 = time.perf_counter()
     splits = ch4_experiment("memory_arm").load()
     tasks = planning_tasks(splits.train, p.n_tasks, p.task_seed)
-    trained = _pool_map(_train_one, [(n, s, float(budget_s), max_steps) for s in seeds for n in PLANNING_MODELS],
-                        jobs)
-    states = {s: {} for s in seeds}
-    training: dict[str, list[dict[str, Any]]] = {n: [None] * len(seeds) for n in PLANNING_MODELS}  # type: ignore[list-item]
-    for name, seed, state, info in trained:
-        states[seed][name] = state
-        training[name][seeds.index(seed)] = info
+    states, training = _train_models("ch4", PLANNING_MODELS, seeds, budget_s, max_steps, jobs)
     cfg = {"protocol": asdict(p), "tasks": tasks.tolist()}
     planned = dict(_pool_map(_plan_seed, [(s, states[s], cfg) for s in seeds], jobs))
     keys = ("cost", "success", "final_error", "command_change", "near_bounds", "onplan_rmse", "wall_s")
@@ -254,6 +299,195 @@ def run_planning_study(seeds: Sequence[int], budget_s: float, out_path: str | No
     return res
 
 
+# =============================================================================================
+# The payload study (Section 7.6): planning with an inferred task
+# =============================================================================================
+
+PAYLOAD_MODELS = ("HiP-RSSM (linear task term)", "ac-RKN (Chapter 4)")
+"""The trained models of Chapter 5's experiment, on the vertical payload arm, that the payload study plans through."""
+
+PAYLOAD_POLICIES = ("CEM + true-payload simulator", "CEM + nominal-payload simulator", "CEM through the HiP-RSSM",
+                    "CEM through the ac-RKN", "PD to the target")
+"""The rows of the payload study, in table order: the simulator with the true payload (upper reference),
+the same simulator with the nominal payload (what knowing the payload is worth to exact physics),
+the two learned models, and the arm's own PD controller sent the target (lower reference)."""
+
+PAYLOAD_REGIMES = {"training range": None, "gap, 0.5-0.75 kg": (0.5, 0.75), "heavier, 2.0-2.5 kg": (2.0, 2.5)}
+"""Where the study's payloads are drawn (kg): the union of the training ranges
+(:func:`pgm_wm.datasets.payload_arm.sample_train_payloads`), the gap left out of training and the
+heavier range of the dataset's ``interp`` and ``extrap`` splits."""
+
+
+@dataclass(frozen=True)
+class PayloadProtocol:
+    """Settings of the payload study (the same for every policy).
+
+    Every task is a payload and a target angle pair. ``warm_up`` steps of the datasets' own random
+    PD waypoints (:func:`pgm_wm.datasets.two_link_arm.pd_targets`, seeded per task) from rest move
+    the arm with the unseen payload before the first planned command: the interaction from which
+    the HiP-RSSM infers its task. Then ``steps`` control steps with a planning horizon
+    ``horizon`` (one window of Chapter 5 minus its observed prefix, so that a model's input is
+    exactly two of its windows); a task succeeds when both joint errors are at most ``tol`` (rad) on
+    each of the last ``success_steps`` steps. Cost weights: ``obs_weight`` on the two angles (0 on
+    the velocities), ``action_weight`` on the PD targets. ``n_per_regime`` tasks per entry of
+    :data:`PAYLOAD_REGIMES`; CEM settings as in :class:`PlanningProtocol`; ``model_context``: the
+    most recent observations a learned model sees (Chapter 5's context length)."""
+
+    warm_up: int = 50
+    horizon: int = 13
+    steps: int = 50
+    tol: float = 0.03
+    success_steps: int = 5
+    n_per_regime: int = 4
+    task_seed: int = 11
+    obs_weight: float = 1.0
+    action_weight: float = 1e-4
+    n_samples: int = 64
+    n_iters: int = 3
+    elite_frac: float = 0.1
+    model_context: int = 37
+
+    def __post_init__(self) -> None:
+        for name in ("warm_up", "horizon", "steps", "success_steps", "n_per_regime", "n_samples", "n_iters",
+                     "model_context"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise ValueError(f"{name}: must be a positive int, got {v!r}")
+        if self.success_steps > self.steps:
+            raise ValueError(f"success_steps: must be <= steps = {self.steps}, got {self.success_steps}")
+        if self.warm_up < self.model_context:
+            raise ValueError(f"warm_up: must be >= model_context = {self.model_context}, got {self.warm_up}")
+        for name in ("tol", "obs_weight", "action_weight"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name}: must be a positive finite number, got {v!r}")
+        if not 0.0 < self.elite_frac <= 1.0:
+            raise ValueError(f"elite_frac: must be in (0, 1], got {self.elite_frac!r}")
+
+
+def payload_arm_params() -> dict:
+    """The vertical payload arm's simulator parameters (:data:`pgm_wm.datasets.payload_arm.DEFAULT_PARAMS`)
+    as :class:`pgm_wm.planning.TwoLinkArmEnv` takes them (without the schedule's own keys)."""
+    from ..datasets.payload_arm import DEFAULT_PARAMS
+    from ..datasets.two_link_arm import DEFAULT_PARAMS as ARM
+
+    return {k: v for k, v in DEFAULT_PARAMS.items() if k in ARM}
+
+
+def payload_tasks(train: Any, n_per_regime: int, seed: int) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """The payload study's tasks: ``(targets (n, 4), payloads (n,), regimes)``, ``n_per_regime``
+    per entry of :data:`PAYLOAD_REGIMES` (seeded). Target angles are uniform inside the 10–90 %
+    quantiles of the training split's angles, target velocities 0 (weight 0 in the cost)."""
+    from ..datasets.payload_arm import sample_train_payloads
+
+    n_per_regime = _pos(n_per_regime, "n_per_regime")
+    rng = np.random.default_rng(seed)
+    obs = train.obs.double().reshape(-1, train.obs.shape[-1]).numpy()
+    lo, hi = np.quantile(obs[:, :2], [0.1, 0.9], axis=0)
+    payloads, regimes = [], []
+    for regime, rng_kg in PAYLOAD_REGIMES.items():
+        draw = sample_train_payloads(rng, n_per_regime) if rng_kg is None else rng.uniform(*rng_kg, n_per_regime)
+        payloads.extend(draw.tolist())
+        regimes.extend([regime] * n_per_regime)
+    n = len(payloads)
+    targets = np.zeros((n, obs.shape[1]))
+    targets[:, :2] = rng.uniform(lo, hi, size=(n, 2))
+    return targets, np.asarray(payloads), regimes
+
+
+def _pos(v: Any, name: str) -> int:
+    if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+        raise ValueError(f"{name}: must be a positive int, got {v!r}")
+    return v
+
+
+def _plan_payload_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[str, Any]]
+                       ) -> tuple[int, dict[str, Any]]:
+    from ..datasets.two_link_arm import pd_targets
+    from ..planning import (ConstantPolicy, QuadraticCost, SamplingPlanner, TwoLinkArmEnv, closed_loop,
+                            command_statistics, simulator_predictor, warm_up, world_model_predictor)
+
+    torch.set_num_threads(1)
+    seed, states, cfg = task
+    p = PayloadProtocol(**cfg["protocol"])
+    exp = _experiment("ch5_payload")
+    splits = exp.load()
+    models = _load_models(exp, splits, states, seed)
+    params = payload_arm_params()
+    stats = splits.train.stats
+    W = torch.tensor([p.obs_weight, p.obs_weight, 0.0, 0.0], dtype=torch.float64)
+    R = torch.full((2,), p.action_weight, dtype=torch.float64)
+    cost = QuadraticCost(W, R)
+    low, high = np.asarray(params["target_low"], float), np.asarray(params["target_high"], float)
+    learned = {"CEM through the HiP-RSSM": world_model_predictor(models[PAYLOAD_MODELS[0]], stats,
+                                                                 context_len=p.model_context),
+               "CEM through the ac-RKN": world_model_predictor(models[PAYLOAD_MODELS[1]], stats,
+                                                               context_len=p.model_context)}
+    nominal = TwoLinkArmEnv(cfg["nominal_payload"], params)
+    out: dict[str, Any] = _empty_record(PAYLOAD_POLICIES)
+    out["_data_commands"] = dict(zip(("command_change", "near_bounds"), command_statistics(splits.train.actions.double())))
+    for i, (target, payload) in enumerate(zip(np.asarray(cfg["tasks"], float), cfg["payloads"])):
+        env = TwoLinkArmEnv(float(payload), params)
+        commands = pd_targets(np.random.default_rng(p.task_seed * 1000 + i), 1, p.warm_up - 1, params)[0]
+        state0, oh0, ah0 = warm_up(env, np.zeros(4), commands)     # the same interaction for every policy and seed
+        sampler_seed = 1000 * seed + i
+
+        def cem(predict: Any) -> SamplingPlanner:
+            return SamplingPlanner(predict, cost, p.horizon, low, high, method="cem", n_samples=p.n_samples,
+                                   n_iters=p.n_iters, elite_frac=p.elite_frac, seed=sampler_seed)
+
+        policies = {"CEM + true-payload simulator": cem(simulator_predictor(env)),
+                    "CEM + nominal-payload simulator": cem(simulator_predictor(nominal)),
+                    **{n: cem(pr) for n, pr in learned.items()},
+                    "PD to the target": ConstantPolicy(target[:2])}
+        for name in PAYLOAD_POLICIES:
+            t0 = time.perf_counter()
+            run = closed_loop(env, policies[name], state0, oh0, ah0, target, p.steps, cost, tol=p.tol,
+                              success_steps=p.success_steps)
+            _record_run(out[name], env, run, state0, time.perf_counter() - t0)
+    return seed, out
+
+
+def run_payload_study(seeds: Sequence[int], budget_s: float, out_path: str | None = None, *,
+                      protocol: PayloadProtocol | None = None, jobs: int = 1,
+                      max_steps: int | None = None) -> dict[str, Any]:
+    """Train the :data:`PAYLOAD_MODELS` of Chapter 5's experiment on ``payload_arm`` for every seed
+    (``budget_s`` CPU seconds each, :func:`~pgm_wm.experiments.chapters.ch5_experiment`'s protocol),
+    then run every policy of :data:`PAYLOAD_POLICIES` on every task of :func:`payload_tasks` in
+    closed loop on :class:`pgm_wm.planning.TwoLinkArmEnv` with the task's payload; write the
+    results to ``out_path`` (if given) and return them. The nominal payload is the training split's
+    mean. ``jobs`` processes, one thread each."""
+    p = protocol or PayloadProtocol()
+    seeds = _check_run_args(seeds, budget_s)
+    wall0 = time.perf_counter()
+    splits = _experiment("ch5_payload").load()
+    targets, payloads, regimes = payload_tasks(splits.train, p.n_per_regime, p.task_seed)
+    nominal = float(splits.train.hidden["payload"].double().mean())
+    states, training = _train_models("ch5_payload", PAYLOAD_MODELS, seeds, budget_s, max_steps, jobs)
+    cfg = {"protocol": asdict(p), "tasks": targets.tolist(), "payloads": payloads.tolist(), "nominal_payload": nominal}
+    planned = dict(_pool_map(_plan_payload_seed, [(s, states[s], cfg) for s in seeds], jobs))
+    keys = ("cost", "success", "final_error", "command_change", "near_bounds", "onplan_rmse", "wall_s")
+    policies = {name: {key: [planned[s][name][key] for s in seeds] for key in keys} for name in PAYLOAD_POLICIES}
+    res = {"experiment": "ch7_payload_arm",
+           "description": "Chapter 7, closed-loop planning with an inferred task on payload_arm (unseen payloads)",
+           "provenance": provenance(budget_cpu_s=float(budget_s), seeds=seeds, jobs=jobs, max_steps=max_steps,
+                                    wall_s=round(time.perf_counter() - wall0, 1)),
+           "protocol": asdict(p), "tasks": targets.tolist(), "payloads": payloads.tolist(), "regimes": regimes,
+           "nominal_payload": nominal, "units": "rad",
+           "data_commands": planned[seeds[0]]["_data_commands"], "models": list(PAYLOAD_MODELS),
+           "training": training, "policies": policies}
+    check_planning_study(res, min_seeds=1)
+    if out_path is not None:
+        write_json(out_path, res)
+    return res
+
+
+def _policies(results: Mapping[str, Any]) -> tuple[str, ...]:
+    """The rows of a study in table order: :data:`POLICIES` for the memory-arm study,
+    :data:`PAYLOAD_POLICIES` for the payload study (its ``experiment`` key says which)."""
+    return PAYLOAD_POLICIES if results.get("experiment") == "ch7_payload_arm" else POLICIES
+
+
 def check_planning_study(results: Mapping[str, Any], min_seeds: int = 5) -> None:
     """Raise ``ValueError`` unless ``results`` is a complete closed-loop study: at least
     ``min_seeds`` seeds, the package provenance, every policy of :data:`POLICIES` with finite
@@ -269,7 +503,7 @@ def check_planning_study(results: Mapping[str, Any], min_seeds: int = 5) -> None
     if not prov.get("package_hash") or not prov.get("code_hashes"):
         raise ValueError("results: no package_hash / code_hashes in the provenance")
     shape = (len(seeds), len(results["tasks"]))
-    for name in POLICIES:
+    for name in _policies(results):
         entry = results["policies"].get(name)
         if entry is None:
             raise ValueError(f"results: no policy {name!r}")
@@ -279,7 +513,7 @@ def check_planning_study(results: Mapping[str, Any], min_seeds: int = 5) -> None
                 raise ValueError(f"results: policy {name!r}, {key!r} is not a finite non-negative {shape} array")
         if not np.isin(np.asarray(entry["success"]), (0.0, 1.0)).all():
             raise ValueError(f"results: policy {name!r}, 'success' is not 0/1")
-    for name in PLANNING_MODELS:
+    for name in results.get("models", PLANNING_MODELS):
         runs = results["training"].get(name, [])
         if len(runs) != len(seeds) or any(r is None or not {"steps", "curve", "converged", "best_valid"} <= set(r)
                                           for r in runs):
@@ -301,7 +535,7 @@ def planning_table(results: Mapping[str, Any], n_boot: int = 2000) -> dict[str, 
     """Per policy: mean true cost, success rate and mean final tracking error (rad), each with the
     two-level (seeds × tasks) bootstrap interval of :func:`~pgm_wm.experiments.stats.mean_interval`."""
     out = {}
-    for name in POLICIES:
+    for name in _policies(results):
         e = results["policies"][name]
         out[name] = {key: mean_interval(np.asarray(e[key], dtype=np.float64), n_boot=n_boot)
                      for key in ("cost", "success", "final_error")}
