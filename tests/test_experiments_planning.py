@@ -115,3 +115,118 @@ def test_cli_checks_arguments_before_training(tmp_path, monkeypatch):
                  ["ch7", "--out", "results/ch4_memory_arm.json"]):
         with pytest.raises(SystemExit):
             cli.main(argv + ([] if "--out" in argv else ["--out", str(tmp_path / "x.json")]))
+
+
+# --- the payload study (Section 7.6) -------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def small_payload_study():
+    from pgm_wm.experiments.planning_study import PayloadProtocol, run_payload_study
+
+    protocol = PayloadProtocol(n_per_regime=1, steps=6, success_steps=2, n_samples=16, n_iters=2)
+    return run_payload_study([0, 1], budget_s=30.0, protocol=protocol, jobs=1, max_steps=3)
+
+
+def test_small_payload_study_has_every_policy_seed_and_task(small_payload_study):
+    from pgm_wm.experiments.planning_study import PAYLOAD_MODELS, PAYLOAD_POLICIES, PAYLOAD_REGIMES
+
+    res = small_payload_study
+    check_planning_study(res, min_seeds=2)
+    assert list(res["policies"]) == list(PAYLOAD_POLICIES)
+    assert res["regimes"] == list(PAYLOAD_REGIMES)
+    for name in PAYLOAD_POLICIES:
+        e = res["policies"][name]
+        assert np.asarray(e["cost"]).shape == (2, 3)
+        assert np.asarray(e["onplan_rmse"]).shape == ((2, 3, 13) if name.startswith("CEM") else (2, 0))
+    for name in PAYLOAD_MODELS:
+        assert [r["steps"] for r in res["training"][name]] == [3, 3]
+    # the table reads the payload study's own rows
+    assert list(planning_table(res, n_boot=50)) == list(PAYLOAD_POLICIES)
+    missing = {**res, "policies": {k: v for k, v in res["policies"].items() if k != "PD to the target"}}
+    with pytest.raises(ValueError, match="PD to the target"):
+        check_planning_study(missing, min_seeds=2)
+
+
+def test_small_payload_study_properties(small_payload_study):
+    res = small_payload_study
+    pol = res["policies"]
+    # the PD controller is deterministic: the same run for every seed
+    np.testing.assert_array_equal(pol["PD to the target"]["cost"][0], pol["PD to the target"]["cost"][1])
+    # the true-payload simulator predicts its own plans exactly; the nominal one does not when the
+    # payload differs from the nominal (the heavier regime: more than 1 kg away)
+    assert np.abs(pol["CEM + true-payload simulator"]["onplan_rmse"]).max() < 1e-9
+    heavy = res["regimes"].index("heavier, 2.0-2.5 kg")
+    assert abs(res["payloads"][heavy] - res["nominal_payload"]) > 1.0
+    assert np.asarray(pol["CEM + nominal-payload simulator"]["onplan_rmse"])[:, heavy].min() > 1e-4
+
+
+def test_payload_tasks_are_in_their_regimes_and_seeded():
+    from pgm_wm.datasets import load
+    from pgm_wm.datasets.payload_arm import TRAIN_PAYLOAD_RANGES
+    from pgm_wm.experiments.planning_study import PAYLOAD_REGIMES, payload_tasks
+
+    train = load("payload_arm", "train")
+    targets, payloads, regimes = payload_tasks(train, 50, seed=3)
+    assert targets.shape == (150, 4) and payloads.shape == (150,) and len(regimes) == 150
+    assert (targets[:, 2:] == 0).all()
+    lo, hi = np.quantile(train.obs.double().reshape(-1, 4).numpy()[:, :2], [0.1, 0.9], axis=0)
+    assert (targets[:, :2] >= lo).all() and (targets[:, :2] <= hi).all()
+    for regime, rng_kg in PAYLOAD_REGIMES.items():
+        p = payloads[[r == regime for r in regimes]]
+        assert len(p) == 50
+        ranges = TRAIN_PAYLOAD_RANGES if rng_kg is None else [rng_kg]
+        assert all(any(a <= x <= b for a, b in ranges) for x in p)
+    again = payload_tasks(train, 50, seed=3)
+    np.testing.assert_array_equal(targets, again[0])
+    np.testing.assert_array_equal(payloads, again[1])
+    assert not np.array_equal(payloads, payload_tasks(train, 50, seed=4)[1])
+    with pytest.raises(ValueError, match="^n_per_regime"):
+        payload_tasks(train, 0, seed=3)
+
+
+@pytest.mark.parametrize("bad", [dict(horizon=0), dict(warm_up=10), dict(tol=0.0), dict(elite_frac=1.5),
+                                 dict(n_per_regime=2.0)])
+def test_payload_protocol_rejects_bad_settings(bad):
+    from pgm_wm.experiments.planning_study import PayloadProtocol
+
+    with pytest.raises(ValueError, match=f"^{next(iter(bad))}"):
+        PayloadProtocol(**bad)
+
+
+def test_payload_cli_checks_arguments_before_training(tmp_path, monkeypatch):
+    from pgm_wm.experiments import __main__ as cli
+    from pgm_wm.experiments import planning_study
+
+    def no_run(*a, **k):
+        raise AssertionError("the study ran")
+
+    monkeypatch.setattr(planning_study, "run_payload_study", no_run)
+    for argv in (["ch7_payload", "--jobs", "999"], ["ch7_payload", "--tasks", "0"],
+                 ["ch7_payload", "--out", "results/ch4_memory_arm.json"]):
+        with pytest.raises(SystemExit):
+            cli.main(argv + ([] if "--out" in argv else ["--out", str(tmp_path / "x.json")]))
+
+
+def test_payload_closed_loops_nominal_equals_true_at_the_nominal_payload():
+    from pgm_wm.experiments.planning_study import PayloadProtocol, payload_closed_loops
+
+    p = PayloadProtocol(steps=4, success_steps=2, n_samples=16, n_iters=2)
+    targets = np.array([[0.2, -0.3, 0.0, 0.0], [-0.1, 0.4, 0.0, 0.0]])
+    rows = ("CEM + true-payload simulator", "CEM + nominal-payload simulator", "PD to the target")
+    same, other = (payload_closed_loops(p, targets, [1.0, 2.2], nominal, seed=0, rows=rows) for nominal in (1.0, 0.5))
+    # task 0 has the nominal payload 1.0: the two simulator planners are the same planner
+    a, b = same[0].runs[rows[0]], same[0].runs[rows[1]]
+    np.testing.assert_array_equal(a.actions.numpy(), b.actions.numpy())
+    assert a.total_cost == b.total_cost
+    # with a wrong nominal payload the plans differ; the true-payload row does not depend on it
+    assert not np.array_equal(other[0].runs[rows[1]].actions.numpy(), a.actions.numpy())
+    np.testing.assert_array_equal(other[1].runs[rows[0]].actions.numpy(), same[1].runs[rows[0]].actions.numpy())
+    # the PD controller holds its command at the target
+    np.testing.assert_allclose(same[1].runs[rows[2]].actions.numpy(), np.tile(targets[1, :2], (4, 1)))
+    with pytest.raises(ValueError, match="^rows"):
+        payload_closed_loops(p, targets, [1.0, 2.2], 1.0, 0, rows=("CEM through a crystal ball",))
+    with pytest.raises(ValueError, match="^learned"):
+        payload_closed_loops(p, targets, [1.0, 2.2], 1.0, 0, rows=("CEM through the HiP-RSSM",))
+    with pytest.raises(ValueError, match="^targets"):
+        payload_closed_loops(p, targets[:, :2], [1.0, 2.2], 1.0, 0, rows=rows)

@@ -58,8 +58,8 @@ from .results import provenance, write_json
 from .stats import Interval, mean_interval, paired_mean_ratio
 
 __all__ = ["PlanningProtocol", "PLANNING_MODELS", "POLICIES", "fit_arx", "planning_tasks", "run_planning_study",
-           "PayloadProtocol", "PAYLOAD_MODELS", "PAYLOAD_POLICIES", "PAYLOAD_REGIMES", "payload_tasks",
-           "run_payload_study", "check_planning_study", "load_planning_study", "planning_table", "planning_ratios"]
+           "PayloadProtocol", "PAYLOAD_MODELS", "PAYLOAD_POLICIES", "PAYLOAD_REGIMES", "payload_arm_params",
+           "payload_tasks", "PayloadTaskRuns", "payload_closed_loops", "run_payload_study", "check_planning_study", "load_planning_study", "planning_table", "planning_ratios"]
 
 PLANNING_MODELS = ("ac-RKN (difference readout)", "GRU")
 """The trained models of Chapter 4's study that the study plans through."""
@@ -338,7 +338,7 @@ class PayloadProtocol:
     steps: int = 50
     tol: float = 0.03
     success_steps: int = 5
-    n_per_regime: int = 4
+    n_per_regime: int = 6
     task_seed: int = 11
     obs_weight: float = 1.0
     action_weight: float = 1e-4
@@ -401,11 +401,73 @@ def _pos(v: Any, name: str) -> int:
     return v
 
 
-def _plan_payload_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[str, Any]]
-                       ) -> tuple[int, dict[str, Any]]:
+@dataclass
+class PayloadTaskRuns:
+    """The closed loops of one task of the payload study: its simulator ``env`` (true payload), the
+    state ``state0`` after the warm-up (where planning starts) and, per policy, the run and its wall time."""
+
+    env: Any
+    state0: Any
+    runs: dict[str, Any]
+    wall_s: dict[str, float]
+
+
+def payload_closed_loops(protocol: PayloadProtocol, targets: Any, payloads: Sequence[float], nominal_payload: float,
+                         seed: int, learned: Mapping[str, Any] | None = None,
+                         rows: Sequence[str] = PAYLOAD_POLICIES) -> list[PayloadTaskRuns]:
+    """Run the payload study's policies ``rows`` (names of :data:`PAYLOAD_POLICIES`) on every task
+    (``targets (n, 4)``, ``payloads (n,)`` in kg) for one ``seed``: per task the warm-up of
+    :class:`PayloadProtocol` in :class:`pgm_wm.planning.TwoLinkArmEnv` with the task's payload, then
+    :func:`pgm_wm.planning.closed_loop` for each row, every CEM row with the same sampler seed.
+    ``learned`` maps the learned rows (``"CEM through the HiP-RSSM"``, ``"CEM through the ac-RKN"``)
+    to their predictors; the simulator rows and the PD controller need nothing."""
     from ..datasets.two_link_arm import pd_targets
     from ..planning import (ConstantPolicy, QuadraticCost, SamplingPlanner, TwoLinkArmEnv, closed_loop,
-                            command_statistics, simulator_predictor, warm_up, world_model_predictor)
+                            simulator_predictor, warm_up)
+
+    p = protocol
+    learned = dict(learned or {})
+    unknown = [r for r in rows if r not in PAYLOAD_POLICIES]
+    if unknown:
+        raise ValueError(f"rows: unknown policies {unknown}; known: {list(PAYLOAD_POLICIES)}")
+    missing = [r for r in rows if r.startswith("CEM through") and r not in learned]
+    if missing:
+        raise ValueError(f"learned: no predictor for {missing}")
+    targets = np.asarray(targets, dtype=np.float64)
+    if targets.ndim != 2 or targets.shape[1] != 4 or len(targets) != len(payloads):
+        raise ValueError(f"targets: expected shape (len(payloads), 4), got {targets.shape}")
+    params = payload_arm_params()
+    W = torch.tensor([p.obs_weight, p.obs_weight, 0.0, 0.0], dtype=torch.float64)
+    cost = QuadraticCost(W, torch.full((2,), p.action_weight, dtype=torch.float64))
+    low, high = np.asarray(params["target_low"], float), np.asarray(params["target_high"], float)
+    nominal = TwoLinkArmEnv(float(nominal_payload), params)
+    out = []
+    for i, (target, payload) in enumerate(zip(targets, payloads)):
+        env = TwoLinkArmEnv(float(payload), params)
+        commands = pd_targets(np.random.default_rng(p.task_seed * 1000 + i), 1, p.warm_up - 1, params)[0]
+        state0, oh0, ah0 = warm_up(env, np.zeros(4), commands)     # the same interaction for every policy and seed
+
+        def cem(predict: Any) -> SamplingPlanner:
+            return SamplingPlanner(predict, cost, p.horizon, low, high, method="cem", n_samples=p.n_samples,
+                                   n_iters=p.n_iters, elite_frac=p.elite_frac, seed=1000 * seed + i)
+
+        make = {"CEM + true-payload simulator": lambda: cem(simulator_predictor(env)),
+                "CEM + nominal-payload simulator": lambda: cem(simulator_predictor(nominal)),
+                "PD to the target": lambda: ConstantPolicy(target[:2]),
+                **{n: (lambda pr=pr: cem(pr)) for n, pr in learned.items()}}
+        task = PayloadTaskRuns(env, state0, {}, {})
+        for name in rows:
+            t0 = time.perf_counter()
+            task.runs[name] = closed_loop(env, make[name](), state0, oh0, ah0, target, p.steps, cost, tol=p.tol,
+                                          success_steps=p.success_steps)
+            task.wall_s[name] = time.perf_counter() - t0
+        out.append(task)
+    return out
+
+
+def _plan_payload_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[str, Any]]
+                       ) -> tuple[int, dict[str, Any]]:
+    from ..planning import command_statistics, world_model_predictor
 
     torch.set_num_threads(1)
     seed, states, cfg = task
@@ -413,38 +475,17 @@ def _plan_payload_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict
     exp = _experiment("ch5_payload")
     splits = exp.load()
     models = _load_models(exp, splits, states, seed)
-    params = payload_arm_params()
     stats = splits.train.stats
-    W = torch.tensor([p.obs_weight, p.obs_weight, 0.0, 0.0], dtype=torch.float64)
-    R = torch.full((2,), p.action_weight, dtype=torch.float64)
-    cost = QuadraticCost(W, R)
-    low, high = np.asarray(params["target_low"], float), np.asarray(params["target_high"], float)
     learned = {"CEM through the HiP-RSSM": world_model_predictor(models[PAYLOAD_MODELS[0]], stats,
                                                                  context_len=p.model_context),
                "CEM through the ac-RKN": world_model_predictor(models[PAYLOAD_MODELS[1]], stats,
                                                                context_len=p.model_context)}
-    nominal = TwoLinkArmEnv(cfg["nominal_payload"], params)
     out: dict[str, Any] = _empty_record(PAYLOAD_POLICIES)
-    out["_data_commands"] = dict(zip(("command_change", "near_bounds"), command_statistics(splits.train.actions.double())))
-    for i, (target, payload) in enumerate(zip(np.asarray(cfg["tasks"], float), cfg["payloads"])):
-        env = TwoLinkArmEnv(float(payload), params)
-        commands = pd_targets(np.random.default_rng(p.task_seed * 1000 + i), 1, p.warm_up - 1, params)[0]
-        state0, oh0, ah0 = warm_up(env, np.zeros(4), commands)     # the same interaction for every policy and seed
-        sampler_seed = 1000 * seed + i
-
-        def cem(predict: Any) -> SamplingPlanner:
-            return SamplingPlanner(predict, cost, p.horizon, low, high, method="cem", n_samples=p.n_samples,
-                                   n_iters=p.n_iters, elite_frac=p.elite_frac, seed=sampler_seed)
-
-        policies = {"CEM + true-payload simulator": cem(simulator_predictor(env)),
-                    "CEM + nominal-payload simulator": cem(simulator_predictor(nominal)),
-                    **{n: cem(pr) for n, pr in learned.items()},
-                    "PD to the target": ConstantPolicy(target[:2])}
+    out["_data_commands"] = dict(zip(("command_change", "near_bounds"),
+                                     command_statistics(splits.train.actions.double())))
+    for t in payload_closed_loops(p, cfg["tasks"], cfg["payloads"], cfg["nominal_payload"], seed, learned):
         for name in PAYLOAD_POLICIES:
-            t0 = time.perf_counter()
-            run = closed_loop(env, policies[name], state0, oh0, ah0, target, p.steps, cost, tol=p.tol,
-                              success_steps=p.success_steps)
-            _record_run(out[name], env, run, state0, time.perf_counter() - t0)
+            _record_run(out[name], t.env, t.runs[name], t.state0, t.wall_s[name])
     return seed, out
 
 
