@@ -158,7 +158,10 @@ def test_small_payload_study_properties(small_payload_study):
     assert np.abs(pol["CEM + true-payload simulator"]["onplan_rmse"]).max() < 1e-9
     heavy = res["regimes"].index("heavier, 2.0-2.5 kg")
     assert abs(res["payloads"][heavy] - res["nominal_payload"]) > 1.0
-    assert np.asarray(pol["CEM + nominal-payload simulator"]["onplan_rmse"])[:, heavy].min() > 1e-4
+    onplan = np.asarray(pol["CEM + nominal-payload simulator"]["onplan_rmse"])
+    assert onplan[:, heavy].min() > 1e-4
+    # scored on the angles only (rad): one step of 0.02 s moves them by far less than 0.05 rad
+    assert onplan[..., 0].max() < 0.05
 
 
 def test_payload_tasks_are_in_their_regimes_and_seeded():
