@@ -70,6 +70,23 @@ POLICIES = ("CEM + true simulator", "LQR through the ARX model", "CEM through th
 """The rows of the study, in table order (upper reference first, lower references last)."""
 
 
+def _check_protocol(protocol: Any, counts: Sequence[str]) -> None:
+    """The checks every study protocol shares: ``counts`` positive ints, ``success_steps <= steps``,
+    ``tol`` and the cost weights positive and finite, ``elite_frac`` in (0, 1]."""
+    for name in counts:
+        v = getattr(protocol, name)
+        if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+            raise ValueError(f"{name}: must be a positive int, got {v!r}")
+    if protocol.success_steps > protocol.steps:
+        raise ValueError(f"success_steps: must be <= steps = {protocol.steps}, got {protocol.success_steps}")
+    for name in ("tol", "obs_weight", "action_weight"):
+        v = getattr(protocol, name)
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            raise ValueError(f"{name}: must be a positive finite number, got {v!r}")
+    if not 0.0 < protocol.elite_frac <= 1.0:
+        raise ValueError(f"elite_frac: must be in (0, 1], got {protocol.elite_frac!r}")
+
+
 @dataclass(frozen=True)
 class PlanningProtocol:
     """Settings of the closed-loop study (the same for every policy).
@@ -96,19 +113,8 @@ class PlanningProtocol:
     model_context: int = 50
 
     def __post_init__(self) -> None:
-        for name in ("context", "horizon", "steps", "success_steps", "n_tasks", "n_samples", "n_iters",
-                     "model_context"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                raise ValueError(f"{name}: must be a positive int, got {v!r}")
-        if self.success_steps > self.steps:
-            raise ValueError(f"success_steps: must be <= steps = {self.steps}, got {self.success_steps}")
-        for name in ("tol", "obs_weight", "action_weight"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name}: must be a positive finite number, got {v!r}")
-        if not 0.0 < self.elite_frac <= 1.0:
-            raise ValueError(f"elite_frac: must be in (0, 1], got {self.elite_frac!r}")
+        _check_protocol(self, ("context", "horizon", "steps", "success_steps", "n_tasks", "n_samples", "n_iters",
+                               "model_context"))
 
 
 def fit_arx(train: Any, valid: Any, orders: Sequence[int] = (1, 2, 5), horizon: int = 50) -> nn.Module:
@@ -352,21 +358,10 @@ class PayloadProtocol:
     model_context: int = 37
 
     def __post_init__(self) -> None:
-        for name in ("warm_up", "horizon", "steps", "success_steps", "n_per_regime", "n_samples", "n_iters",
-                     "model_context"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                raise ValueError(f"{name}: must be a positive int, got {v!r}")
-        if self.success_steps > self.steps:
-            raise ValueError(f"success_steps: must be <= steps = {self.steps}, got {self.success_steps}")
+        _check_protocol(self, ("warm_up", "horizon", "steps", "success_steps", "n_per_regime", "n_samples",
+                               "n_iters", "model_context"))
         if self.warm_up < self.model_context:
             raise ValueError(f"warm_up: must be >= model_context = {self.model_context}, got {self.warm_up}")
-        for name in ("tol", "obs_weight", "action_weight"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name}: must be a positive finite number, got {v!r}")
-        if not 0.0 < self.elite_frac <= 1.0:
-            raise ValueError(f"elite_frac: must be in (0, 1], got {self.elite_frac!r}")
 
 
 def payload_arm_params() -> dict:
@@ -384,7 +379,8 @@ def payload_tasks(train: Any, n_per_regime: int, seed: int) -> tuple[np.ndarray,
     quantiles of the training split's angles, target velocities 0 (weight 0 in the cost)."""
     from ..datasets.payload_arm import sample_train_payloads
 
-    n_per_regime = _pos(n_per_regime, "n_per_regime")
+    if not isinstance(n_per_regime, int) or isinstance(n_per_regime, bool) or n_per_regime < 1:
+        raise ValueError(f"n_per_regime: must be a positive int, got {n_per_regime!r}")
     rng = np.random.default_rng(seed)
     obs = train.obs.double().reshape(-1, train.obs.shape[-1]).numpy()
     lo, hi = np.quantile(obs[:, :2], [0.1, 0.9], axis=0)
@@ -397,12 +393,6 @@ def payload_tasks(train: Any, n_per_regime: int, seed: int) -> tuple[np.ndarray,
     targets = np.zeros((n, obs.shape[1]))
     targets[:, :2] = rng.uniform(lo, hi, size=(n, 2))
     return targets, np.asarray(payloads), regimes
-
-
-def _pos(v: Any, name: str) -> int:
-    if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-        raise ValueError(f"{name}: must be a positive int, got {v!r}")
-    return v
 
 
 @dataclass
