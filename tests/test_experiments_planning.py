@@ -233,3 +233,21 @@ def test_payload_closed_loops_nominal_equals_true_at_the_nominal_payload():
         payload_closed_loops(p, targets, [1.0, 2.2], 1.0, 0, rows=("CEM through the HiP-RSSM",))
     with pytest.raises(ValueError, match="^targets"):
         payload_closed_loops(p, targets[:, :2], [1.0, 2.2], 1.0, 0, rows=rows)
+
+
+def test_payload_arm_sags_with_the_payload_under_its_pd_controller():
+    """The phenomenon the payload study needs: on the vertical arm the PD controller compensates the
+    gravity of the arm without payload, so commanding the target leaves a steady error that grows
+    with the payload (about K_p^-1 times its gravity torque); without payload there is none."""
+    from pgm_wm.experiments.planning_study import payload_arm_params
+    from pgm_wm.planning import TwoLinkArmEnv
+
+    target = np.array([0.3, -0.4])
+    sag = {}
+    for payload in (0.0, 1.0, 2.25):
+        env = TwoLinkArmEnv(payload, payload_arm_params())
+        q = env.rollout(np.zeros(4), np.tile(target, (1, 150, 1)))[0, -1]     # 3 s holding the command
+        sag[payload] = np.abs(q[:2] - target).max()
+    assert sag[0.0] < 1e-3
+    assert 0.05 < sag[1.0] < sag[2.25]
+    assert sag[2.25] > 0.2

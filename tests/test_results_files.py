@@ -76,3 +76,19 @@ def test_the_chapter7_study_is_complete():
     for name in PLANNING_MODELS:
         for run in res["training"][name]:
             assert run["steps"] > 100 and run["best_valid"] < mean_valid, name
+
+
+def test_the_chapter7_payload_study_is_complete():
+    """Chapter 7's payload study: five seeds, Chapter 5's budget, every policy on every task of every
+    payload range, every planning model trained well past its initialization (more than 100 steps,
+    far below the validation RMSE it started from)."""
+    from pgm_wm.experiments.planning_study import (PAYLOAD_MODELS, PAYLOAD_POLICIES, PAYLOAD_REGIMES,
+                                                   check_planning_study, load_planning_study)
+
+    res = load_planning_study(results_path("ch7_payload_arm"))
+    check_planning_study(res, min_seeds=5)
+    assert res["provenance"]["budget_cpu_s"] >= 240 and list(res["policies"]) == list(PAYLOAD_POLICIES)
+    assert sorted(set(res["regimes"])) == sorted(PAYLOAD_REGIMES) and len(res["tasks"]) >= 3 * 6
+    for name in PAYLOAD_MODELS:
+        for run in res["training"][name]:
+            assert run["steps"] > 100 and run["best_valid"] < 0.5 * run["curve"][0]["valid"], name
