@@ -103,16 +103,21 @@ def test_run_rejects_bad_seeds_and_budget():
         run_planning_study([0], 0.0)
 
 
-def test_cli_checks_arguments_before_training(tmp_path, monkeypatch):
+@pytest.mark.parametrize("study, runner, bad_args", [
+    ("ch7", "run_planning_study", (["--jobs", "999"], ["--seeds", "0"], ["--seed-start", "-1"],
+                                   ["--out", "results/ch4_memory_arm.json"])),
+    ("ch7_payload", "run_payload_study", (["--jobs", "999"], ["--tasks", "0"],
+                                          ["--out", "results/ch4_memory_arm.json"]))])
+def test_cli_checks_arguments_before_training(tmp_path, monkeypatch, study, runner, bad_args):
     from pgm_wm.experiments import __main__ as cli
     from pgm_wm.experiments import planning_study
 
     def no_run(*a, **k):
         raise AssertionError("the study ran")
 
-    monkeypatch.setattr(planning_study, "run_planning_study", no_run)
-    for argv in (["ch7", "--jobs", "999"], ["ch7", "--seeds", "0"], ["ch7", "--seed-start", "-1"],
-                 ["ch7", "--out", "results/ch4_memory_arm.json"]):
+    monkeypatch.setattr(planning_study, runner, no_run)
+    for args in bad_args:
+        argv = [study, *args]
         with pytest.raises(SystemExit):
             cli.main(argv + ([] if "--out" in argv else ["--out", str(tmp_path / "x.json")]))
 
@@ -196,19 +201,6 @@ def test_payload_protocol_rejects_bad_settings(bad):
     with pytest.raises(ValueError, match=f"^{next(iter(bad))}"):
         PayloadProtocol(**bad)
 
-
-def test_payload_cli_checks_arguments_before_training(tmp_path, monkeypatch):
-    from pgm_wm.experiments import __main__ as cli
-    from pgm_wm.experiments import planning_study
-
-    def no_run(*a, **k):
-        raise AssertionError("the study ran")
-
-    monkeypatch.setattr(planning_study, "run_payload_study", no_run)
-    for argv in (["ch7_payload", "--jobs", "999"], ["ch7_payload", "--tasks", "0"],
-                 ["ch7_payload", "--out", "results/ch4_memory_arm.json"]):
-        with pytest.raises(SystemExit):
-            cli.main(argv + ([] if "--out" in argv else ["--out", str(tmp_path / "x.json")]))
 
 
 def test_payload_closed_loops_nominal_equals_true_at_the_nominal_payload():
