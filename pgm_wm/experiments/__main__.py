@@ -4,7 +4,7 @@
 OUT PART...`` merges parts run with different seeds; ``python -m pgm_wm.experiments ch7 [--seeds 5] [--budget 240]
 [--jobs 2] [--tasks 16] [--out F] [--force]`` runs Chapter 7's closed-loop planning study
 (:mod:`pgm_wm.experiments.planning_study`), ``ch7_payload`` (same options, ``--tasks`` per payload
-regime) its payload study. Every argument and the output path are checked before any
+regime) its payload study, ``ch7_risk`` (same options) its risk study. Every argument and the output path are checked before any
 training; the file is written atomically; a committed results file is only replaced with
 ``--force``."""
 
@@ -15,6 +15,8 @@ import math
 import os
 import sys
 from pathlib import Path
+
+import numpy as np
 
 from .chapters import EXPERIMENTS
 from .results import (check_output_path, conclusions, load_results, merge_results, provenance_text, save_results,
@@ -64,25 +66,24 @@ def ch7_main(argv: list[str], study: str = "ch7") -> int:
     """``python -m pgm_wm.experiments ch7 ...``: Chapter 7's closed-loop study on the memory arm
     (:func:`pgm_wm.experiments.planning_study.run_planning_study`, ``results/ch7_memory_arm.json``);
     ``python -m pgm_wm.experiments ch7_payload ...``: its payload study
-    (:func:`pgm_wm.experiments.planning_study.run_payload_study`, ``results/ch7_payload_arm.json``),
-    unless ``--out`` says otherwise."""
-    from .planning_study import (PayloadProtocol, PlanningProtocol, planning_ratios, planning_table,
-                                 run_payload_study, run_planning_study)
+    (:func:`pgm_wm.experiments.planning_study.run_payload_study`, ``results/ch7_payload_arm.json``);
+    ``python -m pgm_wm.experiments ch7_risk ...``: its risk study
+    (:func:`pgm_wm.experiments.planning_study.run_risk_study`, ``results/ch7_risk.json``), unless
+    ``--out`` says otherwise."""
+    from . import planning_study as ps
 
     payload = study == "ch7_payload"
-    proto_cls = PayloadProtocol if payload else PlanningProtocol
-    default_out = "ch7_payload_arm.json" if payload else "ch7_memory_arm.json"
+    proto_cls = {"ch7": ps.PlanningProtocol, "ch7_payload": ps.PayloadProtocol, "ch7_risk": ps.RiskProtocol}[study]
+    default_out = {"ch7": "ch7_memory_arm.json", "ch7_payload": "ch7_payload_arm.json", "ch7_risk": "ch7_risk.json"}[study]
     parser = argparse.ArgumentParser(prog=f"python -m pgm_wm.experiments {study}", description=ch7_main.__doc__)
     parser.add_argument("--seeds", type=_positive_int, default=5, help="number of seeds; default 5")
     parser.add_argument("--seed-start", type=int, default=0, help="first seed (default 0)")
     parser.add_argument("--budget", type=_budget, default=240.0,
                         help="CPU seconds of training per model and seed (default 240, the chapters' studies)")
     parser.add_argument("--max-steps", type=_positive_int, default=None, help="also stop training after this many steps")
-    if payload:
-        parser.add_argument("--tasks", type=_positive_int, default=PayloadProtocol.n_per_regime,
-                            help="tasks per payload regime")
-    else:
-        parser.add_argument("--tasks", type=_positive_int, default=PlanningProtocol.n_tasks, help="targets per seed")
+    parser.add_argument("--tasks", type=_positive_int,
+                        default=ps.PayloadProtocol.n_per_regime if payload else ps.PlanningProtocol.n_tasks,
+                        help="tasks per payload regime" if payload else "test targets per seed")
     parser.add_argument("--steps", type=_positive_int, default=proto_cls.steps, help="control steps per task")
     parser.add_argument("--jobs", type=_positive_int, default=1,
                         help=f"parallel processes (each one thread); at most {os.cpu_count() or 1} here")
@@ -97,20 +98,25 @@ def ch7_main(argv: list[str], study: str = "ch7") -> int:
     try:
         check_output_path(out, force=args.force)
         steps = dict(steps=args.steps, success_steps=min(proto_cls.success_steps, args.steps))
-        protocol = (PayloadProtocol(n_per_regime=args.tasks, **steps) if payload
-                    else PlanningProtocol(n_tasks=args.tasks, **steps))
+        protocol = proto_cls(**({"n_per_regime": args.tasks} if payload else {"n_tasks": args.tasks}), **steps)
     except ValueError as err:
         parser.error(f"argument --out: {err}" if "out" in str(err)[:4] else str(err))
-    run = run_payload_study if payload else run_planning_study
+    run = {"ch7": ps.run_planning_study, "ch7_payload": ps.run_payload_study, "ch7_risk": ps.run_risk_study}[study]
     res = run(range(args.seed_start, args.seed_start + args.seeds), args.budget, out,  # type: ignore[operator]
               protocol=protocol, jobs=args.jobs, max_steps=args.max_steps)
-    for name, row in planning_table(res, n_boot=500).items():
+    for name, row in ps.planning_table(res, n_boot=500).items():
         print(f"{name:32s} cost {row['cost'].format()}  success {row['success'].format('.2f')}  "
               f"final error {row['final_error'].format('.3g', 1e3)} mrad")
-    policy, rivals = (("CEM through the HiP-RSSM", ["CEM through the ac-RKN", "CEM + true-payload simulator"])
-                      if payload else ("CEM through the ac-RKN", ["CEM through the ARX model", "CEM through the GRU"]))
-    for rival, iv in planning_ratios(res, policy, rivals, n_boot=500).items():
+    policy, rivals = {"ch7": ("CEM through the ac-RKN", ["CEM through the ARX model", "CEM through the GRU"]),
+                      "ch7_payload": ("CEM through the HiP-RSSM", ["CEM through the ac-RKN",
+                                                                   "CEM + true-payload simulator"]),
+                      "ch7_risk": ("CEM through the ac-RKN, risk-averse", ["CEM through the ac-RKN"])}[study]
+    for rival, iv in ps.planning_ratios(res, policy, rivals, n_boot=500).items():
         print(f"cost ratio {policy} / {rival}: {iv.format()}")
+    if study == "ch7_risk":
+        for name, e in res["policies"].items():
+            print(f"{name:45s} failures {np.mean(e['failure']):.2f}  overshoot {1e3 * np.mean(e['overshoot']):.0f} mrad")
+        print("risk weights chosen on validation targets:", res["risk_chosen"])
     print(f"written: {out}")
     return 0
 
@@ -119,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] == "merge":
         return merge_main(argv[1:])
-    if argv and argv[0] in ("ch7", "ch7_payload"):
+    if argv and argv[0] in ("ch7", "ch7_payload", "ch7_risk"):
         return ch7_main(argv[1:], argv[0])
     parser = argparse.ArgumentParser(prog="python -m pgm_wm.experiments", description=__doc__)
     parser.add_argument("name", choices=sorted(EXPERIMENTS), help="which chapter's experiment")

@@ -38,6 +38,14 @@ is inferred from the previous window of interaction, against the task-blind Chap
 simulator with the true and with the nominal payload. Its files have the same layout (plus
 ``payloads`` and ``regimes``; its on-plan RMSE is over the two joint angles), so the same tables read
 them.
+
+A third, ``python -m pgm_wm.experiments ch7_risk --seeds 5 --budget 240 --jobs 2``
+(:func:`run_risk_study`, ``results/ch7_risk.json``, Chapter 7, Section 7.5), asks whether
+penalising predicted variance (the risk term of Eq. plan-expected-cost) avoids a failure: the
+targets of the memory-arm study with a stop :attr:`RiskProtocol.stop_margin` past each target,
+touching it a failure (:func:`stop_overshoot`); planners through the ac-RKN and through the
+ac-RKN + GRU ensemble (Eq. plan-ensemble), each without and with a risk weight chosen per seed on
+separate validation targets; with the 2σ coverage of each model's predictions along the plans it chose.
 """
 
 from __future__ import annotations
@@ -60,7 +68,9 @@ from .stats import Interval, mean_interval, paired_mean_ratio
 
 __all__ = ["PlanningProtocol", "PLANNING_MODELS", "POLICIES", "fit_arx", "planning_tasks", "run_planning_study",
            "PayloadProtocol", "PAYLOAD_MODELS", "PAYLOAD_POLICIES", "PAYLOAD_REGIMES", "payload_arm_params",
-           "payload_tasks", "PayloadTaskRuns", "payload_closed_loops", "run_payload_study", "check_planning_study", "load_planning_study", "planning_table", "planning_ratios"]
+           "payload_tasks", "PayloadTaskRuns", "payload_closed_loops", "run_payload_study", "RiskProtocol",
+           "RISK_POLICIES", "stop_overshoot", "run_risk_study", "check_planning_study", "load_planning_study",
+           "planning_table", "planning_ratios"]
 
 PLANNING_MODELS = ("ac-RKN (difference readout)", "GRU")
 """The trained models of Chapter 4's study that the study plans through."""
@@ -212,9 +222,21 @@ def _record_run(entry: dict[str, Any], env: Any, run: Any, state0: Any, wall_s: 
         entry["onplan_rmse"].append(np.sqrt((err ** 2).mean(axis=(0, 2))).tolist())
 
 
+def _memory_arm_start(p: PlanningProtocol) -> tuple[Any, Any, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The memory arm's simulator, its state, observation and command histories after ``p.context``
+    rest steps with zero commands (where every closed loop starts), and the cost weights ``W``, ``R``."""
+    from ..planning import MemoryArmEnv, warm_up
+
+    env = MemoryArmEnv()
+    state0, oh0, ah0 = warm_up(env, env.initial_state(), np.zeros((p.context - 1, env.action_dim)))
+    W = torch.full((env.obs_dim,), p.obs_weight, dtype=torch.float64)
+    R = torch.full((env.action_dim,), p.action_weight, dtype=torch.float64)
+    return env, state0, oh0, ah0, W, R
+
+
 def _plan_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[str, Any]]) -> tuple[int, dict[str, Any]]:
-    from ..planning import (ARXLQRPolicy, ConstantPolicy, MemoryArmEnv, QuadraticCost, RandomPolicy, SamplingPlanner,
-                            closed_loop, command_statistics, simulator_predictor, warm_up, world_model_predictor)
+    from ..planning import (ARXLQRPolicy, ConstantPolicy, QuadraticCost, RandomPolicy, SamplingPlanner, closed_loop,
+                            command_statistics, simulator_predictor, world_model_predictor)
 
     torch.set_num_threads(1)
     seed, states, cfg = task
@@ -223,10 +245,7 @@ def _plan_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[str, An
     splits = exp.load()
     models = _load_models(exp, splits, states, seed)
     arx = fit_arx(splits.train, splits.valid)
-    env = MemoryArmEnv()
-    state0, oh0, ah0 = warm_up(env, env.initial_state(), np.zeros((p.context - 1, env.action_dim)))
-    W = torch.full((env.obs_dim,), p.obs_weight, dtype=torch.float64)
-    R = torch.full((env.action_dim,), p.action_weight, dtype=torch.float64)
+    env, state0, oh0, ah0, W, R = _memory_arm_start(p)
     cost = QuadraticCost(W, R)
     stats = splits.train.stats
     predictors = {"CEM + true simulator": simulator_predictor(env),
@@ -517,10 +536,168 @@ def run_payload_study(seeds: Sequence[int], budget_s: float, out_path: str | Non
     return res
 
 
+# =============================================================================================
+# The risk study (Section 7.5): does penalising predicted variance avoid a failure?
+# =============================================================================================
+
+ENSEMBLE = "ac-RKN + GRU ensemble"
+"""The two trained models of :data:`PLANNING_MODELS` as one predictor, the moments of their mixture
+(:func:`pgm_wm.planning.ensemble_predictor`, Eq. plan-ensemble): members that differ in architecture,
+not only in seed."""
+
+RISK_POLICIES = ("CEM + true simulator", "CEM through the ac-RKN", "CEM through the ac-RKN, risk-averse",
+                 f"CEM through the {ENSEMBLE}", f"CEM through the {ENSEMBLE}, risk-averse", "zero commands")
+"""The rows of the risk study, in table order: the simulator (upper reference), each learned predictor
+without the risk term (:math:`\\lambda = 0`) and with the :math:`\\lambda` chosen on the validation
+targets, and zero commands (lower reference; it never moves, so it never touches a stop)."""
+
+
+@dataclass(frozen=True)
+class RiskProtocol(PlanningProtocol):
+    """Settings of the risk study: those of :class:`PlanningProtocol` (the memory-arm study's tasks,
+    closed loop and CEM) plus a **stop** ``stop_margin`` (rad) past each target, on each joint, on the
+    far side seen from the rest posture where every run starts; a run that passes a stop at any step
+    *fails* (:func:`stop_overshoot`). The planners do not know the stops; their cost is unchanged.
+    The risk weight :math:`\\lambda` of Eq. (plan-expected-cost) is chosen per seed and predictor
+    among ``risks`` on ``n_valid_tasks`` validation targets (:func:`~pgm_wm.experiments.planning_study.planning_tasks`
+    with ``valid_task_seed``): fewest failures, then lowest mean cost. The test targets are never used
+    for the choice."""
+
+    stop_margin: float = 0.1
+    risks: tuple[float, ...] = (0.0, 10.0, 100.0, 1000.0)
+    n_valid_tasks: int = 6
+    valid_task_seed: int = 11
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _check_protocol(self, ("n_valid_tasks",))
+        if not (isinstance(self.stop_margin, (int, float)) and math.isfinite(self.stop_margin) and self.stop_margin > 0):
+            raise ValueError(f"stop_margin: must be a positive finite number, got {self.stop_margin!r}")
+        risks = tuple(self.risks) if isinstance(self.risks, (list, tuple)) else ()
+        if (not risks or any(not isinstance(r, (int, float)) or not math.isfinite(r) or r < 0 for r in risks)
+                or len(set(risks)) != len(risks)):
+            raise ValueError(f"risks: must be distinct finite numbers >= 0, got {self.risks!r}")
+        object.__setattr__(self, "risks", tuple(float(r) for r in risks))
+
+
+def stop_overshoot(obs: Any, start: Any, target: Any) -> float:
+    r"""How far a run went past its target: :math:`\max_{t,j} d_j\,(o_{t,j} - r_j)` with
+    :math:`d_j = \operatorname{sign}(r_j - s_j)` the direction of travel of joint :math:`j` from the
+    start posture :math:`s` (rad; negative if the run never reached a target). A run fails when this
+    exceeds :attr:`RiskProtocol.stop_margin`. ``obs: (T, do)``, ``start, target: (do,)``."""
+    o = np.asarray(obs, dtype=np.float64)
+    s, r = np.asarray(start, dtype=np.float64), np.asarray(target, dtype=np.float64)
+    if o.ndim != 2 or s.shape != (o.shape[1],) or r.shape != s.shape:
+        raise ValueError(f"obs: expected (T, do) with start and target (do,), got {o.shape}, {s.shape}, {r.shape}")
+    if not (np.isfinite(o).all() and np.isfinite(s).all() and np.isfinite(r).all()):
+        raise ValueError("obs: obs, start and target must be finite")
+    return float((np.sign(r - s) * (o - r)).max())
+
+
+def _plan_risk_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[str, Any]]) -> tuple[int, dict[str, Any]]:
+    from ..planning import (ConstantPolicy, QuadraticCost, SamplingPlanner, closed_loop, ensemble_predictor,
+                            plan_prediction_errors, simulator_predictor, world_model_predictor)
+
+    torch.set_num_threads(1)
+    seed, states, cfg = task
+    p = RiskProtocol(**cfg["protocol"])
+    exp = _experiment("ch4")
+    splits = exp.load()
+    models = _load_models(exp, splits, states, seed)
+    env, state0, oh0, ah0, W, R = _memory_arm_start(p)
+    score = QuadraticCost(W, R)
+    stats = splits.train.stats
+    single = {n: world_model_predictor(models[n], stats, context_len=p.model_context) for n in PLANNING_MODELS}
+    learned = {"CEM through the ac-RKN": single[PLANNING_MODELS[0]],
+               f"CEM through the {ENSEMBLE}": ensemble_predictor(list(single.values()))}
+
+    def run(predict: Any, risk: float, target: np.ndarray, i: int) -> Any:
+        policy = (ConstantPolicy(np.zeros(env.action_dim)) if predict is None else
+                  SamplingPlanner(predict, QuadraticCost(W, R, risk=risk), p.horizon, env.action_low, env.action_high,
+                                  method="cem", n_samples=p.n_samples, n_iters=p.n_iters, elite_frac=p.elite_frac,
+                                  seed=1000 * seed + i))
+        return closed_loop(env, policy, state0, oh0, ah0, target, p.steps, score, tol=p.tol, success_steps=p.success_steps)
+
+    def fails(r: Any, target: np.ndarray) -> bool:
+        return stop_overshoot(r.obs[1:], oh0[-1], target) > p.stop_margin
+
+    # the risk weight of each learned predictor, chosen on the validation targets: fewest failures, then cost
+    valid: dict[str, dict[str, dict[str, list[float]]]] = {}
+    chosen: dict[str, float] = {}
+    for name, predict in learned.items():
+        valid[name] = {}
+        for risk in p.risks:
+            runs = [(run(predict, risk, tg, 100 + i), tg) for i, tg in enumerate(np.asarray(cfg["valid_tasks"]))]
+            valid[name][f"{risk:g}"] = {"failure": [float(fails(r, tg)) for r, tg in runs],
+                                        "cost": [r.total_cost for r, _ in runs]}
+        chosen[name] = min(p.risks, key=lambda lam: (sum(valid[name][f"{lam:g}"]["failure"]),
+                                                     float(np.mean(valid[name][f"{lam:g}"]["cost"]))))
+    rows = {"CEM + true simulator": (simulator_predictor(env), 0.0), "zero commands": (None, 0.0),
+            **{n: (pr, 0.0) for n, pr in learned.items()},
+            **{f"{n}, risk-averse": (pr, chosen[n]) for n, pr in learned.items()}}
+    out: dict[str, Any] = _empty_record(RISK_POLICIES)
+    for name in RISK_POLICIES:
+        out[name].update(overshoot=[], failure=[], onplan_coverage=[], onplan_sd=[])
+    for i, target in enumerate(np.asarray(cfg["tasks"])):
+        for name in RISK_POLICIES:
+            predict, risk = rows[name]
+            t0 = time.perf_counter()
+            r = run(predict, risk, target, i)
+            entry = out[name]
+            _record_run(entry, env, r, state0, time.perf_counter() - t0)
+            entry["overshoot"].append(stop_overshoot(r.obs[1:], oh0[-1], target))
+            entry["failure"].append(float(fails(r, target)))
+            if r.plan_actions is not None and name != "CEM + true simulator":
+                err, var = plan_prediction_errors(env, r, state0), r.pred_var.numpy()
+                entry["onplan_coverage"].append((np.abs(err) <= 2.0 * np.sqrt(var)).mean(axis=(0, 2)).tolist())
+                entry["onplan_sd"].append(np.sqrt(var.mean(axis=(0, 2))).tolist())
+    out["_validation"] = valid
+    out["_chosen"] = chosen
+    return seed, out
+
+
+def run_risk_study(seeds: Sequence[int], budget_s: float, out_path: str | None = None, *,
+                   protocol: RiskProtocol | None = None, jobs: int = 1, max_steps: int | None = None) -> dict[str, Any]:
+    """Train the :data:`PLANNING_MODELS` for every seed exactly as :func:`run_planning_study` does,
+    choose each learned predictor's risk weight on the validation targets (:class:`RiskProtocol`),
+    then run every policy of :data:`RISK_POLICIES` on the test targets (those of the memory-arm study)
+    with their stops; write the results to ``out_path`` (if given) and return them. Per policy the
+    file holds the arrays of :func:`run_planning_study` plus ``overshoot`` and ``failure``
+    ``(seeds, tasks)``, and for the learned rows ``onplan_coverage`` and ``onplan_sd``
+    ``(seeds, tasks, H)`` (2σ coverage and predicted σ along the chosen plans); per learned predictor
+    the validation scores of every risk weight and the weight chosen, per seed."""
+    p = protocol or RiskProtocol()
+    seeds = _check_run_args(seeds, budget_s)
+    wall0 = time.perf_counter()
+    splits = _experiment("ch4").load()
+    tasks = planning_tasks(splits.train, p.n_tasks, p.task_seed)
+    valid_tasks = planning_tasks(splits.train, p.n_valid_tasks, p.valid_task_seed)
+    states, training = _train_models("ch4", PLANNING_MODELS, seeds, budget_s, max_steps, jobs)
+    cfg = {"protocol": asdict(p), "tasks": tasks.tolist(), "valid_tasks": valid_tasks.tolist()}
+    planned = dict(_pool_map(_plan_risk_seed, [(s, states[s], cfg) for s in seeds], jobs))
+    keys = ("cost", "success", "final_error", "command_change", "near_bounds", "onplan_rmse", "wall_s",
+            "overshoot", "failure", "onplan_coverage", "onplan_sd")
+    policies = {name: {key: [planned[s][name][key] for s in seeds] for key in keys} for name in RISK_POLICIES}
+    learned = list(planned[seeds[0]]["_chosen"])
+    res = {"experiment": "ch7_risk",
+           "description": "Chapter 7, risk-averse planning through learned world models on memory_arm, with stops",
+           "provenance": provenance(budget_cpu_s=float(budget_s), seeds=seeds, jobs=jobs, max_steps=max_steps,
+                                    wall_s=round(time.perf_counter() - wall0, 1)),
+           "protocol": asdict(p), "tasks": tasks.tolist(), "valid_tasks": valid_tasks.tolist(), "units": "rad",
+           "models": list(PLANNING_MODELS), "training": training, "policies": policies,
+           "risk_chosen": {n: [planned[s]["_chosen"][n] for s in seeds] for n in learned},
+           "validation": {n: [planned[s]["_validation"][n] for s in seeds] for n in learned}}
+    check_planning_study(res, min_seeds=1)
+    if out_path is not None:
+        write_json(out_path, res)
+    return res
+
+
 def _policies(results: Mapping[str, Any]) -> tuple[str, ...]:
     """The rows of a study in table order: :data:`POLICIES` for the memory-arm study,
-    :data:`PAYLOAD_POLICIES` for the payload study (its ``experiment`` key says which)."""
-    return PAYLOAD_POLICIES if results.get("experiment") == "ch7_payload_arm" else POLICIES
+    :data:`PAYLOAD_POLICIES` for the payload study, :data:`RISK_POLICIES` for the risk study (its
+    ``experiment`` key says which)."""
+    return {"ch7_payload_arm": PAYLOAD_POLICIES, "ch7_risk": RISK_POLICIES}.get(results.get("experiment"), POLICIES)
 
 
 def check_planning_study(results: Mapping[str, Any], min_seeds: int = 5) -> None:
