@@ -107,7 +107,9 @@ def test_run_rejects_bad_seeds_and_budget():
     ("ch7", "run_planning_study", (["--jobs", "999"], ["--seeds", "0"], ["--seed-start", "-1"],
                                    ["--out", "results/ch4_memory_arm.json"])),
     ("ch7_payload", "run_payload_study", (["--jobs", "999"], ["--tasks", "0"],
-                                          ["--out", "results/ch4_memory_arm.json"]))])
+                                          ["--out", "results/ch4_memory_arm.json"])),
+    ("ch7_risk", "run_risk_study", (["--jobs", "999"], ["--tasks", "0"], ["--steps", "0"],
+                                    ["--out", "results/ch4_memory_arm.json"]))])
 def test_cli_checks_arguments_before_training(tmp_path, monkeypatch, study, runner, bad_args):
     from pgm_wm.experiments import __main__ as cli
     from pgm_wm.experiments import planning_study
@@ -243,3 +245,67 @@ def test_payload_arm_sags_with_the_payload_under_its_pd_controller():
     assert sag[0.0] < 1e-3
     assert 0.05 < sag[1.0] < sag[2.25]
     assert sag[2.25] > 0.2
+
+
+# --- the risk study (Section 7.5) ----------------------------------------------------------------
+
+
+def test_stop_overshoot_measures_the_distance_past_the_target_in_the_direction_of_travel():
+    from pgm_wm.experiments.planning_study import stop_overshoot
+
+    start, target = np.array([0.0, 0.0]), np.array([0.5, -0.3])
+    # joint 0 moves up and passes its target by 0.04; joint 1 moves down and passes it by 0.07
+    obs = np.array([[0.1, -0.1], [0.54, -0.37], [0.5, -0.31]])
+    assert stop_overshoot(obs, start, target) == pytest.approx(0.07)
+    # a run that stops short of both targets has a negative overshoot (the smaller shortfall)
+    assert stop_overshoot(obs[:1], start, target) == pytest.approx(-0.2)
+    # moving in the opposite direction is not an overshoot
+    assert stop_overshoot(np.array([[-0.9, 0.8]]), start, target) < 0
+    with pytest.raises(ValueError, match="^obs"):
+        stop_overshoot(obs, start, target[:1])
+    with pytest.raises(ValueError, match="^obs"):
+        stop_overshoot(obs * np.nan, start, target)
+
+
+@pytest.mark.parametrize("bad", [dict(stop_margin=0.0), dict(risks=()), dict(risks=(0.0, -1.0)), dict(risks=(1.0, 1.0)),
+                                 dict(n_valid_tasks=0), dict(horizon=0)])
+def test_risk_protocol_rejects_bad_settings(bad):
+    from pgm_wm.experiments.planning_study import RiskProtocol
+
+    with pytest.raises(ValueError, match=f"^{next(iter(bad))}"):
+        RiskProtocol(**bad)
+
+
+@pytest.fixture(scope="module")
+def small_risk_study():
+    from pgm_wm.experiments.planning_study import RiskProtocol, run_risk_study
+
+    protocol = RiskProtocol(n_tasks=2, n_valid_tasks=2, steps=8, success_steps=2, n_samples=16, n_iters=2,
+                            model_context=20, stop_margin=0.02, risks=(0.0, 100.0))
+    return run_risk_study([0, 1], budget_s=30.0, protocol=protocol, jobs=1, max_steps=3)
+
+
+def test_small_risk_study_rows_choices_and_failures(small_risk_study):
+    from pgm_wm.experiments.planning_study import RISK_POLICIES
+
+    res = small_risk_study
+    check_planning_study(res, min_seeds=2)
+    assert list(res["policies"]) == list(planning_table(res, n_boot=50)) == list(RISK_POLICIES)
+    margin = res["protocol"]["stop_margin"]
+    for name, e in res["policies"].items():
+        assert np.asarray(e["cost"]).shape == np.asarray(e["failure"]).shape == (2, 2)
+        # a failure is an overshoot past the stop, nothing else
+        np.testing.assert_array_equal(np.asarray(e["failure"]) == 1.0, np.asarray(e["overshoot"]) > margin)
+        learned = name.startswith("CEM through")
+        assert np.asarray(e["onplan_coverage"]).shape == ((2, 2, 10) if learned else (2, 0))
+        cov = np.asarray(e["onplan_coverage"])
+        assert ((cov >= 0) & (cov <= 1)).all()
+    assert not np.asarray(res["policies"]["zero commands"]["failure"]).any()
+    # the risk weight is the validation argmin (fewest failures, then cost), never read from the test targets
+    for name, choices in res["risk_chosen"].items():
+        for seed_i, lam in enumerate(choices):
+            scores = res["validation"][name][seed_i]
+            best = min(scores, key=lambda k: (sum(scores[k]["failure"]), np.mean(scores[k]["cost"])))
+            assert lam == float(best)
+            if lam == 0.0:   # the risk-averse row is then the plain row, run for run
+                assert res["policies"][f"{name}, risk-averse"]["cost"][seed_i] == res["policies"][name]["cost"][seed_i]

@@ -92,3 +92,26 @@ def test_the_chapter7_payload_study_is_complete():
     for name in PAYLOAD_MODELS:
         for run in res["training"][name]:
             assert run["steps"] > 100 and run["best_valid"] < 0.5 * run["curve"][0]["valid"], name
+
+
+def test_the_chapter7_risk_study_is_complete():
+    """Chapter 7's risk study: five seeds, Chapter 4's budget, every policy on every test target with
+    its overshoot and failure, a risk weight per seed and learned predictor that is the argmin of the
+    stored validation scores, and every planning model trained well past its initialization."""
+    from pgm_wm.experiments.planning_study import (PLANNING_MODELS, RISK_POLICIES, check_planning_study,
+                                                   load_planning_study)
+
+    res = load_planning_study(results_path("ch7_risk"))
+    check_planning_study(res, min_seeds=5)
+    assert res["provenance"]["budget_cpu_s"] >= 240 and list(res["policies"]) == list(RISK_POLICIES)
+    assert len(res["tasks"]) >= 16 and len(res["valid_tasks"]) >= 6
+    margin = res["protocol"]["stop_margin"]
+    for name, e in res["policies"].items():
+        np.testing.assert_array_equal(np.asarray(e["failure"]) == 1.0, np.asarray(e["overshoot"]) > margin)
+    for name, choices in res["risk_chosen"].items():
+        for lam, scores in zip(choices, res["validation"][name]):
+            assert lam == float(min(scores, key=lambda k: (sum(scores[k]["failure"]), np.mean(scores[k]["cost"]))))
+    mean_valid = load_results(results_path("ch4_memory_arm"))["models"]["training mean"]["runs"][0]["best_valid"]
+    for name in PLANNING_MODELS:
+        for run in res["training"][name]:
+            assert run["steps"] > 100 and run["best_valid"] < mean_valid, name
