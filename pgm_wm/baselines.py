@@ -101,9 +101,11 @@ class FeedbackModel(nn.Module):
         state = self.init_state(obs.shape[0], obs)
         last: Tensor | None = None
         means, features = [], []
-        for t in range(obs.shape[1]):
-            mem = DifferenceReadout.memory(obs[:, t], mask[:, t], last)
-            state, feature, d_mean = self.advance(state, mem, prepared[:, t])
+        # one unbind instead of an index per step: the backward of ``prepared[:, t]`` would
+        # write a zero tensor the size of all of ``prepared`` at every step
+        for obs_t, mask_t, prepared_t in zip(obs.unbind(1), mask.unbind(1), prepared.unbind(1)):
+            mem = DifferenceReadout.memory(obs_t, mask_t, last)
+            state, feature, d_mean = self.advance(state, mem, prepared_t)
             last = self.readout.step_mean(mem, d_mean)
             means.append(last)
             features.append(feature)
@@ -267,6 +269,36 @@ class FFNNBaseline(FeedbackModel):
             state = torch.cat([state[:, 1:], x.unsqueeze(1)], dim=1)
         mean, var = self.head(self.trunk(state.reshape(state.shape[0], -1)))
         return state, mean, var
+
+    # the fast loop: the trunk's first layer is a sum over window positions; the action and flag
+    # columns of every position are applied to all steps before the loop, so the state is the
+    # window of memories only; the variance head runs once on all features after the loop
+    def _first_weights(self) -> tuple[Tensor, Tensor]:
+        """The first layer's weight split by input part: ``(H, window, do)`` for the memories and
+        ``(H, window, da + 1)`` for the actions and flags."""
+        first = self.trunk[0]
+        weight = first.weight.view(first.out_features, self.window, self.input_dim)
+        return weight[..., :self.obs_dim], weight[..., self.obs_dim:]
+
+    def prepare(self, actions: Tensor, flags: Tensor) -> Tensor:
+        x = torch.cat([actions, flags], dim=-1)
+        padded = torch.cat([x[:, :1].expand(-1, self.window - 1, -1), x], dim=1)  # copies of the first input
+        windows = padded.unfold(1, self.window, 1)                                 # (B, T, da + 1, window)
+        return torch.einsum("btkw,hwk->bth", windows, self._first_weights()[1]) + self.trunk[0].bias
+
+    def advance(self, state: Tensor | None, memory: Tensor, prepared: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        if state is None:
+            state = memory.unsqueeze(1).expand(-1, self.window, -1)
+        else:
+            state = torch.cat([state[:, 1:], memory.unsqueeze(1)], dim=1)
+        w_memory = self._first_weights()[0]
+        h = F.linear(state.reshape(state.shape[0], -1), w_memory.reshape(w_memory.shape[0], -1)) + prepared
+        for layer in list(self.trunk)[1:]:
+            h = layer(h)
+        return state, h, self.head.mean_net(h)
+
+    def variance(self, features: Tensor) -> Tensor:
+        return elup1(self.head.var_net(features))
 
 
 # ----------------------------------------------------------------------------- Chapter 6: Transformer

@@ -206,6 +206,40 @@ def test_difference_readout_running_sum_equals_the_step_by_step_loop(dtype):
             torch.testing.assert_close(a, b, **tol)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("T", [1, 2, 7, 60])
+def test_hybrid_readout_scan_equals_the_step_by_step_loop(dtype, T):
+    """The hybrid readout's log-depth scan against its loop: values and gradients (decoder
+    outputs, gate logit, carried memory), with leading masked steps, a never-observed sequence,
+    long unobserved stretches, and sequence lengths that are and are not powers of two."""
+    from pgm_wm.acrkn import HybridReadout
+
+    g = torch.Generator().manual_seed(5)
+    B, do = 4, 3
+    ro = HybridReadout(do, torch.tensor([0.1, -0.2, 0.0]), torch.tensor([0.5, 2.0, 1.0])).to(dtype)
+    with torch.no_grad():
+        ro.gate_logit.copy_(torch.tensor([2.0, -0.5, 0.3]))
+    obs = torch.randn(B, T, do, generator=g, dtype=dtype)
+    mask = torch.rand(B, T, generator=g) < 0.3
+    mask[0] = False
+    mask[1, : T // 2] = False
+    obs[~mask] = float("nan")            # masked values are never read
+    d_mean = torch.randn(B, T, 2 * do, generator=g, dtype=dtype, requires_grad=True)
+    d_var = torch.rand(B, T, 2 * do, generator=g, dtype=dtype, requires_grad=True)
+    last = torch.randn(B, do, generator=g, dtype=dtype, requires_grad=True)
+    tol = dict(rtol=1e-5, atol=1e-5) if dtype == torch.float32 else dict(rtol=1e-12, atol=1e-12)
+    for carried in (None, last):
+        fast, ref = ro(obs, mask, d_mean, d_var, carried), ro.loop(obs, mask, d_mean, d_var, carried)
+        for a, b in zip(fast, ref):
+            assert a.dtype == dtype and torch.isfinite(a).all()
+            torch.testing.assert_close(a, b, **tol)
+        w = torch.randn(B, T, do, generator=g, dtype=dtype)
+        leaves = [d_mean, d_var, ro.gate_logit] + ([] if carried is None else [last])
+        grads = [torch.autograd.grad(((out[0] + out[1]) * w).sum(), leaves) for out in (fast, ref)]
+        for a, b in zip(*grads):
+            torch.testing.assert_close(a, b, **tol)
+
+
 def test_absolute_prediction_mode_is_the_decoder_output():
     model = make_model(predict_differences=False)
     obs, act, mask = data()
