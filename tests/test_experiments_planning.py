@@ -61,6 +61,26 @@ def test_tables_are_computed_from_the_arrays(small_study):
         planning_ratios(res, "CEM through a crystal ball", ["zero commands"])
 
 
+def test_study_header_says_how_the_file_was_made_and_summarises_training(small_study, monkeypatch):
+    from pgm_wm.experiments import planning_study
+    from pgm_wm.experiments.planning_study import study_header, training_summary
+
+    res, _ = small_study
+    summary = training_summary(res)
+    assert list(summary) == list(PLANNING_MODELS)
+    for name, t in summary.items():
+        runs = res["training"][name]
+        assert t == {"steps": "3–3", "valid": pytest.approx(float(np.median([r["best_valid"] for r in runs]))),
+                     "converged": sum(bool(r["converged"]) for r in runs), "seeds": 2}
+    text = study_header(res, "Training caption.")
+    assert "--out" not in text and f"`{res['provenance']['command'].split(' --out')[0]}`" in text
+    assert "seeds [0, 1], 2 targets," in text and "**Training caption.**" in text
+    assert "**Note:**" not in text                          # made by this package's code
+    assert all(f"| {name} | 3–3 |" in text for name in PLANNING_MODELS)
+    monkeypatch.setattr("pgm_wm.experiments.results.package_note", lambda r: "made by other code")
+    assert "**Note:** made by other code" in planning_study.study_header(res, "T.")
+
+
 def test_check_planning_study_rejects_incomplete_files(small_study):
     res, _ = small_study
     with pytest.raises(ValueError, match="seeds"):

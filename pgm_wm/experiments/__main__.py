@@ -14,7 +14,9 @@ import argparse
 import math
 import os
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 
@@ -62,6 +64,44 @@ def merge_main(argv: list[str]) -> int:
     return 0
 
 
+@dataclass(frozen=True)
+class PlanningStudyCommand:
+    """One Chapter 7 study on the command line: its protocol class, default results file, runner,
+    the paired cost ratio printed as its headline (policy against rivals), which protocol field
+    ``--tasks`` sets, and an optional printer of study-specific lines."""
+
+    protocol: type
+    default_out: str
+    run: Callable[..., dict[str, Any]]
+    headline: tuple[str, tuple[str, ...]]
+    tasks_field: str = "n_tasks"
+    tasks_help: str = "test targets per seed"
+    extra: Callable[[dict[str, Any]], None] | None = None
+
+
+def _print_risk_lines(res: dict[str, Any]) -> None:
+    for name, e in res["policies"].items():
+        print(f"{name:45s} failures {np.mean(e['failure']):.2f}  overshoot {1e3 * np.mean(e['overshoot']):.0f} mrad")
+    print("risk weights chosen on validation targets:", res["risk_chosen"])
+
+
+def planning_study_commands() -> dict[str, PlanningStudyCommand]:
+    """The Chapter 7 studies by command name (imports :mod:`pgm_wm.experiments.planning_study`)."""
+    from . import planning_study as ps
+
+    return {
+        "ch7": PlanningStudyCommand(ps.PlanningProtocol, "ch7_memory_arm.json", ps.run_planning_study,
+                                    ("CEM through the ac-RKN", ("CEM through the ARX model", "CEM through the GRU"))),
+        "ch7_payload": PlanningStudyCommand(ps.PayloadProtocol, "ch7_payload_arm.json", ps.run_payload_study,
+                                            ("CEM through the HiP-RSSM", ("CEM through the ac-RKN",
+                                                                          "CEM + true-payload simulator")),
+                                            tasks_field="n_per_regime", tasks_help="tasks per payload regime"),
+        "ch7_risk": PlanningStudyCommand(ps.RiskProtocol, "ch7_risk.json", ps.run_risk_study,
+                                         ("CEM through the ac-RKN, risk-averse", ("CEM through the ac-RKN",)),
+                                         extra=_print_risk_lines),
+    }
+
+
 def ch7_main(argv: list[str], study: str = "ch7") -> int:
     """``python -m pgm_wm.experiments ch7 ...``: Chapter 7's closed-loop study on the memory arm
     (:func:`pgm_wm.experiments.planning_study.run_planning_study`, ``results/ch7_memory_arm.json``);
@@ -72,51 +112,42 @@ def ch7_main(argv: list[str], study: str = "ch7") -> int:
     ``--out`` says otherwise."""
     from . import planning_study as ps
 
-    payload = study == "ch7_payload"
-    proto_cls = {"ch7": ps.PlanningProtocol, "ch7_payload": ps.PayloadProtocol, "ch7_risk": ps.RiskProtocol}[study]
-    default_out = {"ch7": "ch7_memory_arm.json", "ch7_payload": "ch7_payload_arm.json", "ch7_risk": "ch7_risk.json"}[study]
+    cmd = planning_study_commands()[study]
     parser = argparse.ArgumentParser(prog=f"python -m pgm_wm.experiments {study}", description=ch7_main.__doc__)
     parser.add_argument("--seeds", type=_positive_int, default=5, help="number of seeds; default 5")
     parser.add_argument("--seed-start", type=int, default=0, help="first seed (default 0)")
     parser.add_argument("--budget", type=_budget, default=240.0,
                         help="CPU seconds of training per model and seed (default 240, the chapters' studies)")
     parser.add_argument("--max-steps", type=_positive_int, default=None, help="also stop training after this many steps")
-    parser.add_argument("--tasks", type=_positive_int,
-                        default=ps.PayloadProtocol.n_per_regime if payload else ps.PlanningProtocol.n_tasks,
-                        help="tasks per payload regime" if payload else "test targets per seed")
-    parser.add_argument("--steps", type=_positive_int, default=proto_cls.steps, help="control steps per task")
+    parser.add_argument("--tasks", type=_positive_int, default=getattr(cmd.protocol, cmd.tasks_field),
+                        help=cmd.tasks_help)
+    parser.add_argument("--steps", type=_positive_int, default=cmd.protocol.steps, help="control steps per task")
     parser.add_argument("--jobs", type=_positive_int, default=1,
                         help=f"parallel processes (each one thread); at most {os.cpu_count() or 1} here")
-    parser.add_argument("--out", default=None, help=f"output file (default results/{default_out})")
+    parser.add_argument("--out", default=None, help=f"output file (default results/{cmd.default_out})")
     parser.add_argument("--force", action="store_true", help="overwrite a committed results file")
     args = parser.parse_args(argv)
     if args.jobs > (os.cpu_count() or 1):
         parser.error(f"argument --jobs: {args.jobs} processes but this machine has {os.cpu_count()} CPUs")
     if args.seed_start < 0:
         parser.error("argument --seed-start: must be >= 0")
-    out = args.out or str(Path(__file__).resolve().parents[2] / "results" / default_out)
+    out = args.out or str(Path(__file__).resolve().parents[2] / "results" / cmd.default_out)
     try:
         check_output_path(out, force=args.force)
-        steps = dict(steps=args.steps, success_steps=min(proto_cls.success_steps, args.steps))
-        protocol = proto_cls(**({"n_per_regime": args.tasks} if payload else {"n_tasks": args.tasks}), **steps)
+        protocol = cmd.protocol(**{cmd.tasks_field: args.tasks}, steps=args.steps,
+                                success_steps=min(cmd.protocol.success_steps, args.steps))
     except ValueError as err:
         parser.error(f"argument --out: {err}" if "out" in str(err)[:4] else str(err))
-    run = {"ch7": ps.run_planning_study, "ch7_payload": ps.run_payload_study, "ch7_risk": ps.run_risk_study}[study]
-    res = run(range(args.seed_start, args.seed_start + args.seeds), args.budget, out,  # type: ignore[operator]
-              protocol=protocol, jobs=args.jobs, max_steps=args.max_steps)
+    res = cmd.run(range(args.seed_start, args.seed_start + args.seeds), args.budget, out,
+                  protocol=protocol, jobs=args.jobs, max_steps=args.max_steps)
     for name, row in ps.planning_table(res, n_boot=500).items():
         print(f"{name:32s} cost {row['cost'].format()}  success {row['success'].format('.2f')}  "
               f"final error {row['final_error'].format('.3g', 1e3)} mrad")
-    policy, rivals = {"ch7": ("CEM through the ac-RKN", ["CEM through the ARX model", "CEM through the GRU"]),
-                      "ch7_payload": ("CEM through the HiP-RSSM", ["CEM through the ac-RKN",
-                                                                   "CEM + true-payload simulator"]),
-                      "ch7_risk": ("CEM through the ac-RKN, risk-averse", ["CEM through the ac-RKN"])}[study]
-    for rival, iv in ps.planning_ratios(res, policy, rivals, n_boot=500).items():
+    policy, rivals = cmd.headline
+    for rival, iv in ps.planning_ratios(res, policy, list(rivals), n_boot=500).items():
         print(f"cost ratio {policy} / {rival}: {iv.format()}")
-    if study == "ch7_risk":
-        for name, e in res["policies"].items():
-            print(f"{name:45s} failures {np.mean(e['failure']):.2f}  overshoot {1e3 * np.mean(e['overshoot']):.0f} mrad")
-        print("risk weights chosen on validation targets:", res["risk_chosen"])
+    if cmd.extra is not None:
+        cmd.extra(res)
     print(f"written: {out}")
     return 0
 
@@ -125,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] == "merge":
         return merge_main(argv[1:])
-    if argv and argv[0] in ("ch7", "ch7_payload", "ch7_risk"):
+    if argv and argv[0] in planning_study_commands():
         return ch7_main(argv[1:], argv[0])
     parser = argparse.ArgumentParser(prog="python -m pgm_wm.experiments", description=__doc__)
     parser.add_argument("name", choices=sorted(EXPERIMENTS), help="which chapter's experiment")

@@ -234,18 +234,24 @@ def _memory_arm_start(p: PlanningProtocol) -> tuple[Any, Any, torch.Tensor, torc
     return env, state0, oh0, ah0, W, R
 
 
+def _seed_setup(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[str, Any]], protocol_cls: type,
+                which: str = "ch4") -> tuple[int, Any, dict[str, Any], Any, dict[str, nn.Module]]:
+    """Unpack one worker task ``(seed, model states, config)`` of a study on experiment ``which``
+    (one thread): ``(seed, protocol, config, splits, the seed's trained models)``."""
+    torch.set_num_threads(1)
+    seed, states, cfg = task
+    exp = _experiment(which)
+    splits = exp.load()
+    return seed, protocol_cls(**cfg["protocol"]), cfg, splits, _load_models(exp, splits, states, seed)
+
+
 def _plan_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[str, Any]]) -> tuple[int, dict[str, Any]]:
     from ..planning import (ARXLQRPolicy, ConstantPolicy, QuadraticCost, RandomPolicy, SamplingPlanner, closed_loop,
                             command_statistics, simulator_predictor, world_model_predictor)
 
-    torch.set_num_threads(1)
-    seed, states, cfg = task
-    p = PlanningProtocol(**cfg["protocol"])
-    exp = _experiment("ch4")
-    splits = exp.load()
-    models = _load_models(exp, splits, states, seed)
-    arx = fit_arx(splits.train, splits.valid)
+    seed, p, cfg, splits, models = _seed_setup(task, PlanningProtocol)
     env, state0, oh0, ah0, W, R = _memory_arm_start(p)
+    arx = fit_arx(splits.train, splits.valid)
     cost = QuadraticCost(W, R)
     stats = splits.train.stats
     predictors = {"CEM + true simulator": simulator_predictor(env),
@@ -482,12 +488,7 @@ def _plan_payload_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict
                        ) -> tuple[int, dict[str, Any]]:
     from ..planning import command_statistics, world_model_predictor
 
-    torch.set_num_threads(1)
-    seed, states, cfg = task
-    p = PayloadProtocol(**cfg["protocol"])
-    exp = _experiment("ch5_payload")
-    splits = exp.load()
-    models = _load_models(exp, splits, states, seed)
+    seed, p, cfg, splits, models = _seed_setup(task, PayloadProtocol, "ch5_payload")
     stats = splits.train.stats
     learned = {"CEM through the HiP-RSSM": world_model_predictor(models[PAYLOAD_MODELS[0]], stats,
                                                                  context_len=p.model_context),
@@ -598,12 +599,7 @@ def _plan_risk_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[st
     from ..planning import (ConstantPolicy, QuadraticCost, SamplingPlanner, closed_loop, ensemble_predictor,
                             plan_prediction_errors, simulator_predictor, world_model_predictor)
 
-    torch.set_num_threads(1)
-    seed, states, cfg = task
-    p = RiskProtocol(**cfg["protocol"])
-    exp = _experiment("ch4")
-    splits = exp.load()
-    models = _load_models(exp, splits, states, seed)
+    seed, p, cfg, splits, models = _seed_setup(task, RiskProtocol)
     env, state0, oh0, ah0, W, R = _memory_arm_start(p)
     score = QuadraticCost(W, R)
     stats = splits.train.stats
@@ -618,8 +614,8 @@ def _plan_risk_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[st
                                   seed=1000 * seed + i))
         return closed_loop(env, policy, state0, oh0, ah0, target, p.steps, score, tol=p.tol, success_steps=p.success_steps)
 
-    def fails(r: Any, target: np.ndarray) -> bool:
-        return stop_overshoot(r.obs[1:], oh0[-1], target) > p.stop_margin
+    def overshoot(r: Any, target: np.ndarray) -> float:
+        return stop_overshoot(r.obs[1:], oh0[-1], target)
 
     # the risk weight of each learned predictor, chosen on the validation targets: fewest failures, then cost
     valid: dict[str, dict[str, dict[str, list[float]]]] = {}
@@ -628,7 +624,7 @@ def _plan_risk_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[st
         valid[name] = {}
         for risk in p.risks:
             runs = [(run(predict, risk, tg, 100 + i), tg) for i, tg in enumerate(np.asarray(cfg["valid_tasks"]))]
-            valid[name][f"{risk:g}"] = {"failure": [float(fails(r, tg)) for r, tg in runs],
+            valid[name][f"{risk:g}"] = {"failure": [float(overshoot(r, tg) > p.stop_margin) for r, tg in runs],
                                         "cost": [r.total_cost for r, _ in runs]}
         chosen[name] = min(p.risks, key=lambda lam: (sum(valid[name][f"{lam:g}"]["failure"]),
                                                      float(np.mean(valid[name][f"{lam:g}"]["cost"]))))
@@ -645,8 +641,8 @@ def _plan_risk_seed(task: tuple[int, dict[str, dict[str, torch.Tensor]], dict[st
             r = run(predict, risk, target, i)
             entry = out[name]
             _record_run(entry, env, r, state0, time.perf_counter() - t0)
-            entry["overshoot"].append(stop_overshoot(r.obs[1:], oh0[-1], target))
-            entry["failure"].append(float(fails(r, target)))
+            entry["overshoot"].append(overshoot(r, target))
+            entry["failure"].append(float(entry["overshoot"][-1] > p.stop_margin))
             if r.plan_actions is not None and name != "CEM + true simulator":
                 err, var = plan_prediction_errors(env, r, state0), r.pred_var.numpy()
                 entry["onplan_coverage"].append((np.abs(err) <= 2.0 * np.sqrt(var)).mean(axis=(0, 2)).tolist())
@@ -741,6 +737,40 @@ def load_planning_study(path: str | os.PathLike) -> dict[str, Any]:
     res = json.loads(p.read_text())
     check_planning_study(res, min_seeds=1)
     return res
+
+
+def training_summary(results: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """Per trained model of a planning study: optimizer steps over seeds (``"steps"``, e.g.
+    ``"6812–7540"``), the median best validation RMSE (``"valid"``), how many seeds met the
+    stopping rule (``"converged"``) and of how many (``"seeds"``)."""
+    return {n: {"steps": f"{min(r['steps'] for r in runs)}–{max(r['steps'] for r in runs)}",
+                "valid": float(np.median([r["best_valid"] for r in runs])),
+                "converged": sum(bool(r["converged"]) for r in runs), "seeds": len(runs)}
+            for n, runs in results["training"].items()}
+
+
+def study_header(results: Mapping[str, Any], training_caption: str) -> str:
+    """Markdown for the head of a planning study's section: how the file was produced (command,
+    date, commit, machine, seeds, targets, training budget, run time), the package note if the
+    package's code changed since (:func:`pgm_wm.experiments.results.package_note`), and the
+    table of :func:`training_summary` under the bold ``training_caption``."""
+    from ..plotting import markdown_table
+    from .results import package_note
+
+    prov = results["provenance"]
+    noun = "tasks (target and payload)" if "payloads" in results else "targets"
+    targets = f"{len(results['tasks'])} {noun}" + (
+        f" and {len(results['valid_tasks'])} validation targets" if "valid_tasks" in results else "")
+    text = (f"Produced by `{prov['command'].split(' --out')[0]}` (written to this file) on {prov['date']} at commit {prov['commit'][:10]}, "
+            f"{prov['machine']['cpu_count']} CPUs, torch {prov['machine']['torch']}; seeds {prov['seeds']}, {targets}, "
+            f"{prov['budget_cpu_s']:g} CPU s of training per model and seed; the whole run took "
+            f"{prov['wall_s'] / 60:.0f} min.")
+    note = package_note(results)
+    if note:
+        text += f"\n\n**Note:** {note}"
+    rows = [[n, t["steps"], t["valid"], f"{t['converged']}/{t['seeds']}"] for n, t in training_summary(results).items()]
+    return text + f"\n\n**{training_caption}**\n\n" + markdown_table(
+        rows, ["model", "optimizer steps", "best validation RMSE (median)", "met the stopping rule"], floatfmt=".3g")
 
 
 def planning_table(results: Mapping[str, Any], n_boot: int = 2000) -> dict[str, dict[str, Interval]]:

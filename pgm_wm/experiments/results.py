@@ -141,17 +141,17 @@ def package_note(results: Mapping[str, Any]) -> str | None:
         return None
     when = results.get("provenance", {}).get("date", "an unknown date")
     if made is None:
-        return (f"Note: these results were made on {when} by a package version that did not record its source "
+        return (f"These results were made on {when} by a package version that did not record its source "
                 f"hash, so they may come from other code than the package you are running.")
     changed = changed_code(results)
     if changed == []:
         return None
     if changed is None:
-        return (f"Note: these results were made on {when} by package source {made[:12]}, which differs from the "
+        return (f"These results were made on {when} by package source {made[:12]}, which differs from the "
                 f"source installed here ({package_source_hash()[:12]}); regenerate them with the command in their "
                 f"provenance to see the numbers of this code.")
     shown = ", ".join(f"`pgm_wm/{f}`" for f in changed[:8]) + (f" and {len(changed) - 8} more" if len(changed) > 8 else "")
-    return (f"Note: these results were made on {when}; since then the code (not only the documentation) of "
+    return (f"These results were made on {when}; since then the code (not only the documentation) of "
             f"{len(changed)} package file{'s' if len(changed) > 1 else ''} changed: {shown}. The numbers come from the "
             f"earlier code; regenerate them with the command in their provenance to see the numbers of this code.")
 
