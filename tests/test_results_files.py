@@ -63,6 +63,30 @@ def test_every_trained_model_took_steps_and_beats_the_training_mean(study):
                 assert run["best_valid"] < mean_valid, (name, model, run["best_valid"], mean_valid)
 
 
+def test_readme_count_of_verdicts_with_a_collapsed_learning_rate():
+    """The README's sentence on what *converged* means is read off the four files: how many runs
+    meet the stopping rule and how many of those ended with the learning rate below 1e-3 (and
+    how many below 1e-6) of its start; the learning rate is recorded in every curve entry."""
+    import re
+    from pathlib import Path
+
+    met = low = tiny = 0
+    for name in STUDIES:
+        res = load_results(results_path(name))
+        for model in res["models"].values():
+            for run in model.get("runs", []) if model["trained"] else []:
+                assert all("lr" in c for c in run["curve"]), f"{name}: a curve entry without its learning rate"
+                if run["converged"]:
+                    frac = run["curve"][-1]["lr"] / res["protocol"]["lr"]
+                    met, low, tiny = met + 1, low + (frac < 1e-3), tiny + (frac < 1e-6)
+    readme = " ".join((Path(__file__).resolve().parents[1] / "README.md").read_text().split())
+    found = re.search(r"In the four files, (\d+) of the (\d+) runs that meet it ended with the rate below "
+                      r"10⁻³ of its start \(most below 10⁻⁶\)", readme)
+    assert found, "the README no longer states the count"
+    assert (int(found[1]), int(found[2])) == (low, met), f"README says {found[1]} of {found[2]}; the files: {low} of {met}"
+    assert tiny > met / 2, f"'most below 1e-6' no longer holds: {tiny} of {met}"
+
+
 def test_the_chapter7_study_is_complete():
     """Chapter 7's closed-loop study: five seeds, Chapter 4's budget, every policy on every task,
     every planning model trained well past its initialization (more than 100 steps, below the
