@@ -41,8 +41,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 def _parse_config(text: str) -> tuple[int, float]:
     """``"128:6e-3"`` -> ``(128, 0.006)``."""
@@ -111,11 +109,9 @@ def _key(run: dict[str, Any]) -> tuple:
     return run["model"], run["batch_size"], run["lr"], run.get("lr_floor"), run["seed"], run["budget_cpu_s"]
 
 
-def best_valid_at(run: dict[str, Any], cpu_s: float) -> float:
-    """The lowest validation RMSE the run had reached by ``cpu_s`` CPU seconds of training
-    (``inf`` if it had not validated yet)."""
-    seen = [c["valid"] for c in run["curve"] if c["cpu_s"] <= cpu_s and math.isfinite(c["valid"])]
-    return min(seen) if seen else math.inf
+def _line(run: dict[str, Any]) -> str:
+    return (f"{run['model']:>32} batch {run['batch_size']:>4} lr {run['lr']:g} floor {run['lr_floor']} "
+            f"seed {run['seed']}: {run['steps']} steps, best valid {run['best_valid']:.4f}")
 
 
 def table(results: dict[str, Any], at: tuple[float, ...] = (30.0, 60.0, 120.0, 240.0, 480.0, 960.0)) -> str:
@@ -126,6 +122,7 @@ def table(results: dict[str, Any], at: tuple[float, ...] = (30.0, 60.0, 120.0, 2
     the training depends on the budget (the learning rate is halved on validation plateaus, not on
     a schedule), so the first ``B`` seconds of a longer run are the run with budget ``B``."""
     from pgm_wm.experiments.runner import CONVERGENCE_TOL, improvement_over_last_doubling
+    from pgm_wm.plotting import best_so_far
 
     runs = results["runs"]
     longest = max(r["budget_cpu_s"] for r in runs)
@@ -149,7 +146,7 @@ def table(results: dict[str, Any], at: tuple[float, ...] = (30.0, 60.0, 120.0, 2
                 stats.append("–")
                 continue
             # a run's final validation comes a moment after its budget: at the budget, the whole run
-            cells.append(f"{mean([best_valid_at(r, a if a < budget else math.inf) for r in rs]):.4f}")
+            cells.append(f"{mean([float(best_so_far(r['curve'], [a if a < budget else math.inf])[0]) for r in rs]):.4f}")
             imp = [improvement_over_last_doubling(r["curve"], a) for r in rs]     # as the runner computes it
             stats.append(f"{100 * mean(imp):.1f} % ({sum(i < CONVERGENCE_TOL for i in imp)}/{len(rs)})")
         final_lr = " ".join(f"{r['curve'][-1]['lr'] / r['lr']:.0e}" for r in rs)
@@ -210,14 +207,12 @@ def main(argv: list[str] | None = None) -> int:
 
         with mp.get_context("fork").Pool(args.jobs) as pool:
             for run in pool.imap_unordered(_run, tasks):
-                print(f"{run['model']:>32} batch {run['batch_size']:>4} lr {run['lr']:g} floor {run['lr_floor']} "
-                      f"seed {run['seed']}: "
-                      f"{run['steps']} steps, best valid {run['best_valid']:.4f}", flush=True)
+                print(_line(run), flush=True)
                 new.append(run)
     else:
         for task in tasks:
             new.append(_run(task))
-            print(json.dumps({k: v for k, v in new[-1].items() if k != "curve"}), flush=True)
+            print(_line(new[-1]), flush=True)
     done = {_key(r) for r in new}
     results["runs"] = [r for r in results["runs"] if _key(r) not in done] + new
     prov = provenance(budget_cpu_s=args.budget, seeds=args.seeds, jobs=args.jobs, configs=[list(c) for c in configs],
