@@ -20,11 +20,12 @@ reports, test data.
         --budget 240 --seeds 0 --jobs 2 --out benchmarks/results/learning_speed_ch4.json
     python benchmarks/bench_learning_speed.py --table benchmarks/results/learning_speed_ch4.json
 
-``--lr-floor F`` measures a change the package does not have (yet): ``fit`` halves the learning
-rate after every ``lr_patience`` validations without improvement and has no lower bound, so over
-a long budget the rate can fall to ``1e-10`` of its start and a run "converges" because it has
-stopped moving. With ``--lr-floor`` the optimizer's learning rate is clamped at ``F`` times its
-initial value (Adam wrapped in this process only; the package is not changed).
+``--lr-floor F`` sets the protocol's ``lr_min_fraction`` to ``F``: ``fit`` halves the learning
+rate after every ``lr_patience`` validations without improvement, and without a floor the rate
+can fall to ``1e-10`` of its start within a long budget, so that a run "converges" because it
+has stopped moving. (The runs of ``learning_speed_ch4.json`` with a floor were made before the
+package had ``lr_min``, by clamping Adam's rate at ``F`` times its start in the benchmark process:
+the same schedule.) Without ``--lr-floor`` the study's own floor applies.
 
 A new run appends to an existing ``--out`` file (runs of the same model, configuration, seed and
 budget are replaced), so a long measurement can be split over several calls.
@@ -54,33 +55,6 @@ def _parse_config(text: str) -> tuple[int, float]:
     return out
 
 
-class _FlooredGroup(dict):
-    """An optimizer parameter group whose ``"lr"`` is never set below ``floor``."""
-
-    def __init__(self, group: dict, floor: float) -> None:
-        super().__init__(group)
-        self.floor = floor
-
-    def __setitem__(self, key: str, value: Any) -> None:
-        super().__setitem__(key, max(value, self.floor) if key == "lr" else value)
-
-
-def _floor_adam(fraction: float) -> None:
-    """From now on in this process, ``torch.optim.Adam`` keeps every group's learning rate at or
-    above ``fraction`` times its initial value (``pgm_wm.training.fit`` builds its optimizer
-    through ``torch.optim.Adam``)."""
-    import torch
-
-    base = torch.optim.Adam
-
-    class FlooredAdam(base):  # type: ignore[misc, valid-type]
-        def __init__(self, params: Any, lr: float = 1e-3, **kw: Any) -> None:
-            super().__init__(params, lr=lr, **kw)
-            self.param_groups = [_FlooredGroup(g, g["lr"] * fraction) for g in self.param_groups]
-
-    torch.optim.Adam = FlooredAdam  # type: ignore[misc]
-
-
 def _run(task: tuple[str, str, int, float, int, float, float | None]) -> dict[str, Any]:
     """Train one (model, batch, lr, seed) for ``budget`` CPU seconds, one thread; the record."""
     import torch
@@ -90,14 +64,16 @@ def _run(task: tuple[str, str, int, float, int, float, float | None]) -> dict[st
 
     chapter, name, batch, lr, seed, budget, floor = task
     torch.set_num_threads(1)
-    if floor is not None:
-        _floor_adam(floor)
     exp = EXPERIMENTS[chapter]()
-    exp = dataclasses.replace(exp, protocol=dataclasses.replace(exp.protocol, batch_size=batch, lr=lr))
+    changes: dict[str, Any] = {"batch_size": batch, "lr": lr}
+    if floor is not None:
+        changes["lr_min_fraction"] = floor
+    exp = dataclasses.replace(exp, protocol=dataclasses.replace(exp.protocol, **changes))
     t0 = time.perf_counter()
     _, info = train_model(exp, name, seed, budget)
     curve = [{k: c[k] for k in ("step", "epoch", "cpu_s", "valid", "lr") if k in c} for c in info["curve"]]
-    return {"model": name, "batch_size": batch, "lr": lr, "lr_floor": floor, "seed": seed, "budget_cpu_s": budget,
+    return {"model": name, "batch_size": batch, "lr": lr, "lr_floor": exp.protocol.lr_min_fraction or None, "seed": seed,
+            "budget_cpu_s": budget,
             "wall_s": round(time.perf_counter() - t0, 1),
             **{k: info[k] for k in ("cpu_s", "warm_up_cpu_s", "steps", "epochs", "best_valid", "best_step",
                                     "improvement_last_doubling", "converged")},
@@ -165,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="BATCH:LR pairs (default: the study's own)")
     ap.add_argument("--budget", type=float, default=240.0, help="CPU seconds per run")
     ap.add_argument("--seeds", nargs="+", type=int, default=[0])
-    ap.add_argument("--lr-floor", type=float, help="clamp the learning rate at this fraction of its start")
+    ap.add_argument("--lr-floor", type=float, help="floor of the learning rate, a fraction of its start (default: the study's own)")
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--out", help="JSON file (appended to if it exists)")
     ap.add_argument("--table", help="print the table of a results file and exit")

@@ -425,6 +425,7 @@ def fit(
     max_steps: int | None = None,
     lr_patience: int | None = None,
     lr_factor: float = 0.5,
+    lr_min: float = 0.0,
 ) -> FitHistory:
     """Minimize ``loss_fn`` with Adam over minibatches; the package's only training loop.
 
@@ -472,6 +473,10 @@ def fit(
             validation loss has not improved for ``lr_patience`` validations in a row (a plateau
             schedule; ``None``: a constant learning rate). The learning rate of every validation
             is in the learning curve (``"lr"``).
+        lr_min: the plateau schedule never lowers the learning rate below this value (a floor,
+            ``0 <= lr_min <= lr``). Without one, halving after every ``lr_patience`` flat
+            validations drives the rate to ``1e-10`` of its start within a long budget, and a run
+            then looks converged only because it has stopped moving.
 
     The learning curve (:attr:`FitHistory.curve`) records steps, epochs, CPU and wall seconds,
     and the training and validation losses at every validation.
@@ -518,6 +523,8 @@ def fit(
         raise ValueError(f"lr_patience: needs valid_fn and a positive int, got {lr_patience!r}")
     if not 0 < lr_factor < 1:
         raise ValueError(f"lr_factor: must be in (0, 1), got {lr_factor!r}")
+    if not (isinstance(lr_min, (int, float)) and 0 <= lr_min <= lr):
+        raise ValueError(f"lr_min: must lie in [0, lr] = [0, {lr}], got {lr_min!r}")
     if keep_best is None:
         keep_best = valid_fn is not None
     if keep_best and valid_fn is None:
@@ -607,7 +614,7 @@ def fit(
                            "lr": opt.param_groups[0]["lr"]})
         if lr_patience is not None and since_lr >= lr_patience:
             for group in opt.param_groups:
-                group["lr"] *= lr_factor
+                group["lr"] = max(group["lr"] * lr_factor, lr_min)
             since_lr = 0
         since_total, since_count = 0.0, 0
         return patience is not None and since_best >= patience

@@ -422,3 +422,37 @@ def test_plot_horizon_errors_draws_the_summary():
     with pytest.raises(ValueError, match="^models"):
         plot_horizon_errors(ax, res, ["lstm"], summary=s)
     plt.close(fig)
+
+
+def test_train_model_applies_the_protocols_learning_rate_floor():
+    """With lr_patience 1 the study's schedule halves the rate after every validation without a
+    new best: over 40 validations it falls below its start without a floor, and never below
+    lr_min_fraction * lr with one (here 0.5, so at most one halving shows)."""
+    from dataclasses import replace
+
+    from pgm_wm.experiments.runner import train_model
+
+    def lrs(fraction: float) -> list[float]:
+        exp = _tiny_gru_experiment()
+        exp = replace(exp, protocol=replace(exp.protocol, valid_every=1, lr_patience=1, lr_min_fraction=fraction))
+        _, info = train_model(exp, "gru", seed=0, budget_s=1e6, max_steps=40)
+        return [e["lr"] for e in info["curve"]]
+
+    lr = PROTOCOL.lr
+    free, floored = lrs(0.0), lrs(0.5)
+    assert min(free) < 0.5 * lr
+    assert min(floored) == pytest.approx(0.5 * lr) and max(floored) == pytest.approx(lr)
+    with pytest.raises(ValueError, match="^lr_min_fraction"):
+        replace(PROTOCOL, lr_min_fraction=1.5)
+
+
+def test_final_lr_fraction_reads_the_rate_at_the_end_of_the_curve():
+    from pgm_wm.experiments.runner import final_lr_fraction, train_model
+
+    assert final_lr_fraction({"curve": [{"lr": 4e-3}, {"lr": 2e-3}, {"lr": 1e-3}]}) == pytest.approx(0.25)
+    with pytest.raises(ValueError, match="^run"):
+        final_lr_fraction({"curve": []})
+    with pytest.raises(ValueError, match="^run"):
+        final_lr_fraction({"curve": [{"valid": 1.0}]})
+    _, info = train_model(_tiny_gru_experiment(), "gru", seed=0, budget_s=1e6, max_steps=4)
+    assert final_lr_fraction(info) == 1.0                                 # no schedule in the tiny protocol

@@ -264,3 +264,23 @@ def test_plateau_schedule_halves_the_learning_rate_after_lr_patience_validations
         fit(lambda b, g: (b[0] @ w).sum(), [w], data, batch_size=8, epochs=1, valid_fn=lambda: 1.0, lr_factor=1.0)
     with pytest.raises(ValueError, match="lr_patience"):
         fit(lambda b, g: (b[0] @ w).sum(), [w], data, batch_size=8, epochs=1, lr_patience=3)
+
+
+def test_plateau_schedule_stops_at_lr_min_and_the_optimizer_uses_the_floored_rate():
+    """Never an improvement after the first validation, lr_patience 1, factor 0.5, floor 0.03:
+    the optimizer's rate (recorded in the curve) goes 0.1 -> 0.05 -> 0.03 (clamped, not 0.025)
+    and stays there. Without a floor the same run ends at 0.1 / 2**8."""
+    data = (torch.randn(8, 3),)
+
+    def run(**kw):
+        w = torch.nn.Parameter(torch.zeros(3))
+        return fit(lambda b, g: (b[0] @ w).square().mean(), [w], data, batch_size=8, epochs=10, lr=0.1,
+                   valid_fn=lambda: 1.0, lr_patience=1, keep_best=False, **kw)
+
+    floored = [c["lr"] for c in run(lr_min=0.03).curve]
+    assert floored == pytest.approx([0.1, 0.1, 0.05, 0.03, 0.03, 0.03, 0.03, 0.03, 0.03, 0.03])
+    free = [c["lr"] for c in run().curve]
+    assert free[-1] == pytest.approx(0.1 / 2 ** 8)
+    for bad in (-1e-3, 0.2):
+        with pytest.raises(ValueError, match="lr_min"):
+            run(lr_min=bad)

@@ -70,6 +70,8 @@ def test_readme_count_of_verdicts_with_a_collapsed_learning_rate():
     import re
     from pathlib import Path
 
+    from pgm_wm.experiments.runner import final_lr_fraction
+
     met = low = tiny = 0
     for name in STUDIES:
         res = load_results(results_path(name))
@@ -77,7 +79,7 @@ def test_readme_count_of_verdicts_with_a_collapsed_learning_rate():
             for run in model.get("runs", []) if model["trained"] else []:
                 assert all("lr" in c for c in run["curve"]), f"{name}: a curve entry without its learning rate"
                 if run["converged"]:
-                    frac = run["curve"][-1]["lr"] / res["protocol"]["lr"]
+                    frac = final_lr_fraction(run)
                     met, low, tiny = met + 1, low + (frac < 1e-3), tiny + (frac < 1e-6)
     readme = " ".join((Path(__file__).resolve().parents[1] / "README.md").read_text().split())
     found = re.search(r"In the four files, (\d+) of the (\d+) runs that meet it ended with the rate below "

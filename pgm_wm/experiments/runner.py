@@ -62,7 +62,8 @@ class Protocol:
     ``valid_every``: the open-loop validation RMSE is computed every this many optimizer steps
     (and at the end of the budget); the parameters with the lowest one are kept. With
     ``lr_patience`` the learning rate is halved whenever that many validations in a row brought
-    no improvement (:func:`pgm_wm.training.fit`). At the CPU
+    no improvement (:func:`pgm_wm.training.fit`), never below ``lr_min_fraction`` times ``lr``
+    (:meth:`lr_min`). At the CPU
     times ``curve_checkpoints_s`` the test RMSE is recorded too, for the learning-curve figure
     only (never for a choice).
     """
@@ -82,6 +83,7 @@ class Protocol:
     score_dims: tuple[int, ...] | None = None
     valid_every: int = 25
     lr_patience: int | None = None
+    lr_min_fraction: float = 0.0
     curve_checkpoints_s: tuple[float, ...] = (2.5, 5.0, 10.0, 20.0, 40.0, 80.0, 160.0, 320.0, 640.0, 1280.0)
 
     def __post_init__(self) -> None:
@@ -94,6 +96,13 @@ class Protocol:
             raise ValueError(f"score_dims: need distinct non-negative dimensions, got {self.score_dims}")
         if not isinstance(self.valid_every, int) or self.valid_every < 1:
             raise ValueError(f"valid_every: need a positive int, got {self.valid_every!r}")
+        if not 0 <= self.lr_min_fraction <= 1:
+            raise ValueError(f"lr_min_fraction: need a fraction in [0, 1], got {self.lr_min_fraction!r}")
+
+    @property
+    def lr_min(self) -> float:
+        """The floor of the learning-rate schedule, ``lr_min_fraction * lr`` (``lr_min`` of :func:`~pgm_wm.training.fit`)."""
+        return self.lr_min_fraction * self.lr
 
     def scored(self, x: Tensor) -> Tensor:
         """The scored observation dimensions (``score_dims``) of ``x: (..., do)``."""
@@ -250,6 +259,18 @@ def improvement_over_last_doubling(curve: Sequence[Mapping[str, float]], budget_
     return (half - full) / half
 
 
+def final_lr_fraction(run: Mapping[str, Any]) -> float:
+    """The learning rate at the end of a trained run relative to its start: the ``lr`` of the last
+    entry of the run's learning curve over that of the first (the first validation comes before
+    the schedule can lower the rate). Far below the protocol's ``lr_min_fraction`` only in files
+    made before the schedule had a floor; a run whose rate has fallen to ``1e-6`` of its start has
+    stopped moving, whatever the stopping rule says."""
+    curve = run.get("curve") or []
+    if not curve or "lr" not in curve[0] or "lr" not in curve[-1]:
+        raise ValueError("run: needs a learning curve whose entries record 'lr'")
+    return float(curve[-1]["lr"]) / float(curve[0]["lr"])
+
+
 CONVERGENCE_TOL = 0.02
 """A run has converged when its best validation RMSE improved by less than this fraction over
 the last doubling of its budget (:func:`improvement_over_last_doubling`)."""
@@ -333,7 +354,8 @@ def train_model(exp: Experiment, name: str, seed: int, budget_s: float,
                                      window=p.mask_window, max_window_drop=p.max_window_drop)
         hist = fit(loss_fn, model, (obs, act, val), p.batch_size, lr=p.lr, seed=seed, valid_fn=tracker,
                    progress=False, crop_len=p.window, budget_s=budget_s, patience=p.patience, desc=name,
-                   valid_every=p.valid_every, max_steps=max_steps, lr_patience=p.lr_patience)
+                   valid_every=p.valid_every, max_steps=max_steps, lr_patience=p.lr_patience,
+                   lr_min=p.lr_min)
     if len(tracker.calls) != len(hist.curve):
         raise RuntimeError("train: the learning curve and fit's history disagree (a custom trainer must pass "
                            "valid_fn to fit)")
