@@ -64,28 +64,39 @@ def test_every_trained_model_took_steps_and_beats_the_training_mean(study):
 
 
 def test_readme_count_of_verdicts_with_a_collapsed_learning_rate():
-    """The README's sentence on what *converged* means is read off the four files: how many runs
-    meet the stopping rule and how many of those ended with the learning rate below 1e-3 (and
-    how many below 1e-6) of its start; the learning rate is recorded in every curve entry."""
+    """The README's sentence on what *converged* meant before the schedule had a floor is read off
+    the study files made without one: how many runs meet the stopping rule and how many of those
+    ended with the learning rate below 1e-3 (and how many below 1e-6) of its start. In the files
+    made with a floor no run ends below it. The learning rate is recorded in every curve entry."""
     import re
     from pathlib import Path
 
     from pgm_wm.experiments.runner import final_lr_fraction
 
     met = low = tiny = 0
+    unfloored = []
     for name in STUDIES:
         res = load_results(results_path(name))
+        floor = res["protocol"].get("lr_min_fraction", 0.0)
+        if not floor:
+            unfloored.append(name)
         for model in res["models"].values():
             for run in model.get("runs", []) if model["trained"] else []:
                 assert all("lr" in c for c in run["curve"]), f"{name}: a curve entry without its learning rate"
-                if run["converged"]:
-                    frac = final_lr_fraction(run)
+                frac = final_lr_fraction(run)
+                assert frac >= floor * (1 - 1e-9), f"{name}: a run ended below the protocol's floor"
+                if run["converged"] and not floor:
                     met, low, tiny = met + 1, low + (frac < 1e-3), tiny + (frac < 1e-6)
+    words = {1: "one", 2: "two", 3: "three", 4: "four"}
     readme = " ".join((Path(__file__).resolve().parents[1] / "README.md").read_text().split())
-    found = re.search(r"In the four files, (\d+) of the (\d+) runs that meet it ended with the rate below "
-                      r"10⁻³ of its start \(most below 10⁻⁶\)", readme)
+    if not unfloored:
+        assert "made without a floor" not in readme, "the README still counts files made without a floor"
+        return
+    found = re.search(r"In the (\w+) files? made without a floor, (\d+) of the (\d+) runs that meet it ended with "
+                      r"the rate below 10⁻³ of its start \(most below 10⁻⁶\)", readme)
     assert found, "the README no longer states the count"
-    assert (int(found[1]), int(found[2])) == (low, met), f"README says {found[1]} of {found[2]}; the files: {low} of {met}"
+    assert found[1] == words[len(unfloored)], f"README counts {found[1]} files; made without a floor: {unfloored}"
+    assert (int(found[2]), int(found[3])) == (low, met), f"README says {found[2]} of {found[3]}; the files: {low} of {met}"
     assert tiny > met / 2, f"'most below 1e-6' no longer holds: {tiny} of {met}"
 
 
