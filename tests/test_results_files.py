@@ -15,6 +15,13 @@ REFERENCES = ["repeat last", "training mean", "linear ARX (order on validation)"
 SIMULATED = {"ch4_memory_arm", "ch5_hidden_payload_arm", "ch6_slow_payload_arm"}
 
 
+def _readme_words() -> str:
+    """The README with every run of whitespace made one space (its sentences wrap anywhere)."""
+    from pathlib import Path
+
+    return " ".join((Path(__file__).resolve().parents[1] / "README.md").read_text().split())
+
+
 @pytest.fixture(scope="module", params=STUDIES)
 def study(request):
     return request.param, load_results(results_path(request.param))
@@ -69,7 +76,6 @@ def test_readme_count_of_verdicts_with_a_collapsed_learning_rate():
     ended with the learning rate below 1e-3 (and how many below 1e-6) of its start. In the files
     made with a floor no run ends below it. The learning rate is recorded in every curve entry."""
     import re
-    from pathlib import Path
 
     from pgm_wm.experiments.runner import final_lr_fraction
 
@@ -88,7 +94,7 @@ def test_readme_count_of_verdicts_with_a_collapsed_learning_rate():
                 if run["converged"] and not floor:
                     met, low, tiny = met + 1, low + (frac < 1e-3), tiny + (frac < 1e-6)
     words = {1: "one", 2: "two", 3: "three", 4: "four"}
-    readme = " ".join((Path(__file__).resolve().parents[1] / "README.md").read_text().split())
+    readme = _readme_words()
     if not unfloored:
         assert "made without a floor" not in readme, "the README still counts files made without a floor"
         return
@@ -156,16 +162,14 @@ def test_the_chapter7_risk_study_is_complete():
 
 def test_readme_chapter6_verdicts():
     """The README's sentence on who meets the stopping rule in the Chapter 6 study is read off the file."""
-    from pathlib import Path
-
     res = load_results(results_path("ch6_slow_payload_arm"))
     met = {n: sum(r["converged"] for r in e["runs"]) for n, e in res["models"].items() if e["trained"]}
     assert met == {"MTS3 (H = 25)": 3, "MTS3 fast level alone": 5, "ac-RKN (Chapter 4)": 2,
                    "HiP-RSSM (Chapter 5), carried": 0, "LSTM": 2, "GRU": 0, "Transformer": 0}, met
     plateau = min(r["best_valid"] for r in res["models"]["MTS3 fast level alone"]["runs"])
-    for name in ("MTS3 (H = 25)", "LSTM"):     # the stalls: converged at the fast level's plateau
+    for name, n_stalled in (("MTS3 (H = 25)", 1), ("LSTM", 2)):     # the stalls: converged at the fast level's plateau
         stalled = [r["converged"] for r in res["models"][name]["runs"] if r["best_valid"] > 0.9 * plateau]
-        assert stalled == [True] * (1 if name.startswith("MTS3") else 2), (name, stalled)
-    readme = " ".join((Path(__file__).resolve().parents[1] / "README.md").read_text().split())
+        assert stalled == [True] * n_stalled, (name, stalled)
+    readme = _readme_words()
     assert ("MTS3's fast level alone meets it in every seed (a stall at a payload-blind plateau), MTS3 in three seeds "
             "(one of them the same stall), the ac-RKN in two, the LSTM only in the two seeds that stalled") in readme
