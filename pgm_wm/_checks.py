@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "NonFiniteError",
     "as_tensor",
     "check_tensor",
     "check_last_dims",
@@ -28,6 +29,12 @@ __all__ = [
     "check_mask",
     "check_same_batch",
 ]
+
+
+class NonFiniteError(ValueError):
+    """A value that must be finite is NaN or infinite. A :class:`ValueError` like every other
+    check's error; its own class lets :func:`pgm_wm.training.fit` tell a diverged training run
+    (a model whose outputs overflowed) from a wrong argument."""
 
 
 def as_tensor(name: str, x: object, dtype: torch.dtype | None = None) -> Tensor:
@@ -75,7 +82,7 @@ def check_last_dims(name: str, x: Tensor, dims: Sequence[int | None]) -> Tensor:
 def check_finite(name: str, x: Tensor) -> Tensor:
     """Require all entries of ``x`` to be finite (no NaN / inf)."""
     if not bool(torch.isfinite(x).all()):
-        raise ValueError(f"{name}: contains NaN or infinite values")
+        raise NonFiniteError(f"{name}: contains NaN or infinite values")
     return x
 
 
@@ -83,7 +90,7 @@ def check_positive(name: str, x: Tensor) -> Tensor:
     """Require every entry of a variance-like tensor to be strictly positive and finite."""
     check_tensor(name, x)
     if not bool(torch.isfinite(x).all()):
-        raise ValueError(f"{name}: variances must be finite, got NaN or inf")
+        raise NonFiniteError(f"{name}: variances must be finite, got NaN or inf")
     if not bool((x > 0).all()):
         raise ValueError(
             f"{name}: variances must be strictly positive, got min {float(x.min()):.3g}"
@@ -95,7 +102,7 @@ def check_nonnegative(name: str, x: Tensor) -> Tensor:
     """Require every entry of ``x`` to be >= 0 and finite."""
     check_tensor(name, x)
     if not bool(torch.isfinite(x).all()):
-        raise ValueError(f"{name}: must be finite, got NaN or inf")
+        raise NonFiniteError(f"{name}: must be finite, got NaN or inf")
     if not bool((x >= 0).all()):
         raise ValueError(f"{name}: must be non-negative, got min {float(x.min()):.3g}")
     return x
@@ -112,7 +119,7 @@ def check_spd(name: str, cov: Tensor, semidefinite: bool = False) -> Tensor:
         raise ValueError(f"{name}: expected square matrices (..., n, n), got {tuple(cov.shape)}")
     original, cov = cov, cov.detach()  # a check, not part of the computation graph
     if not bool(torch.isfinite(cov).all()):
-        raise ValueError(f"{name}: contains NaN or infinite values")
+        raise NonFiniteError(f"{name}: contains NaN or infinite values")
     scale = cov.abs().amax(dim=(-1, -2), keepdim=True).clamp_min(1e-300)
     asym = ((cov - cov.transpose(-1, -2)).abs() / scale).amax()
     tol = 1e-6 if cov.dtype == torch.float64 else 1e-4

@@ -31,14 +31,14 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any, Callable, Iterable, NoReturn, Sequence
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
-from ._checks import check_mask, check_tensor
+from ._checks import NonFiniteError, check_mask, check_tensor
 from .metrics import gaussian_nll, rmse
 
 __all__ = [
@@ -325,7 +325,9 @@ class FitHistory:
     * ``cpu_time`` / ``wall_time``: CPU seconds and wall seconds in total (setup included).
     * ``setup_cpu_s``: CPU seconds spent inside :func:`fit` before the first batch (checks,
       optimizer, loading a checkpoint).
-    * ``stopped``: why the loop ended: ``"epochs"``, ``"budget"``, ``"patience"`` or ``"interrupted"``.
+    * ``stopped``: why the loop ended: ``"epochs"``, ``"budget"``, ``"patience"``, ``"interrupted"``
+      or ``"diverged"`` (only with ``on_divergence="stop"``).
+    * ``diverged``: with ``stopped == "diverged"``, what turned non-finite and where (else ``None``).
     * ``resumed_from_epoch``: the epoch a checkpoint resumed at (``None`` for a fresh run).
     """
 
@@ -342,6 +344,7 @@ class FitHistory:
     setup_cpu_s: float = 0.0
     stopped: str = "epochs"
     resumed_from_epoch: int | None = None
+    diverged: str | None = None
 
     @property
     def epochs(self) -> int:
@@ -400,6 +403,10 @@ def _resolve_device(device: torch.device | str | None) -> torch.device | None:
 _CHECKPOINT_FORMAT = "pgm_wm.fit checkpoint v1"
 
 
+class _Diverged(Exception):
+    """Raised inside :func:`fit` (and caught there) when a run diverges with ``on_divergence="stop"``."""
+
+
 def fit(
     loss_fn: LossFn,
     params_or_model: nn.Module | Iterable[nn.Parameter],
@@ -426,6 +433,7 @@ def fit(
     lr_patience: int | None = None,
     lr_factor: float = 0.5,
     lr_min: float = 0.0,
+    on_divergence: str = "raise",
 ) -> FitHistory:
     """Minimize ``loss_fn`` with Adam over minibatches; the package's only training loop.
 
@@ -477,12 +485,22 @@ def fit(
             ``0 <= lr_min <= lr``). Without one, halving after every ``lr_patience`` flat
             validations drives the rate to ``1e-10`` of its start within a long budget, and a run
             then looks converged only because it has stopped moving.
+        on_divergence: what to do when training diverges after at least one optimizer step, i.e.
+            the loss or the gradient norm is non-finite or ``loss_fn`` / ``valid_fn`` raises
+            :class:`pgm_wm._checks.NonFiniteError` (a model output overflowed): ``"raise"``
+            (default) raises ``ValueError``; ``"stop"`` ends the run there as if its budget were
+            spent, with ``stopped = "diverged"`` and the message in :attr:`FitHistory.diverged`;
+            the parameters are then the best validated ones (``keep_best``), else those before
+            the failing step. A study that must not lose a whole run to one seed that blows up
+            uses ``"stop"`` and reports the verdict. Non-finite values at the first step are
+            always raised (nothing was trained; usually bad input).
 
     The learning curve (:attr:`FitHistory.curve`) records steps, epochs, CPU and wall seconds,
     and the training and validation losses at every validation.
 
     Raises ``ValueError`` naming the epoch, the batch and its sequence indices at the first
-    non-finite loss or gradient norm (the parameters are then those before that step).
+    non-finite loss or gradient norm (the parameters are then those before that step), unless
+    ``on_divergence="stop"``.
     """
     cpu_enter, wall_enter = time.process_time(), time.perf_counter()
     sampler = callable(train_tensors) and not isinstance(train_tensors, (list, tuple))
@@ -525,6 +543,8 @@ def fit(
         raise ValueError(f"lr_factor: must be in (0, 1), got {lr_factor!r}")
     if not (isinstance(lr_min, (int, float)) and 0 <= lr_min <= lr):
         raise ValueError(f"lr_min: must lie in [0, lr] = [0, {lr}], got {lr_min!r}")
+    if on_divergence not in ("raise", "stop"):
+        raise ValueError(f"on_divergence: expected 'raise' or 'stop', got {on_divergence!r}")
     if keep_best is None:
         keep_best = valid_fn is not None
     if keep_best and valid_fn is None:
@@ -584,6 +604,12 @@ def fit(
     since_total, since_count = 0.0, 0  # training loss since the last curve entry
     since_lr = 0                       # validations without improvement since the last lr change
 
+    def diverge(message: str, cause: Exception | None = None) -> NoReturn:
+        """A non-finite loss, gradient norm or model output: raise, or end the run (``on_divergence``)."""
+        if on_divergence == "raise" or n_steps == 0:
+            raise ValueError(message) from cause
+        raise _Diverged(message)
+
     def validate(epoch_now: int) -> bool:
         """One validation; returns True when patience ran out."""
         nonlocal best, best_state, since_best, since_total, since_count, since_lr
@@ -594,6 +620,8 @@ def fit(
             try:
                 with torch.no_grad():
                     v = float(valid_fn())
+            except NonFiniteError as err:
+                diverge(f"valid_fn: failed after {n_steps} steps (epoch {epoch_now}): {err}", err)
             except ValueError as err:
                 raise ValueError(f"valid_fn: failed after {n_steps} steps (epoch {epoch_now}): {err}") from err
             finally:
@@ -644,13 +672,15 @@ def fit(
                 where = lambda: f"at epoch {epoch}, batch {b} (sequence indices {_batch_indices(batch, idx)})"  # noqa: E731
                 try:
                     loss = loss_fn(batch, gen)
+                except NonFiniteError as err:
+                    diverge(f"loss_fn: failed {where()}: {err}", err)
                 except ValueError as err:
                     raise ValueError(f"loss_fn: failed {where()}: {err}") from err
                 if not isinstance(loss, Tensor) or loss.ndim != 0:
                     raise ValueError(f"loss_fn: must return a scalar tensor, got {getattr(loss, 'shape', loss)!r}")
                 value = float(loss.detach())
                 if not math.isfinite(value):
-                    raise ValueError(f"loss_fn: non-finite loss {value} {where()}")
+                    diverge(f"loss_fn: non-finite loss {value} {where()}")
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 grads = [p.grad for p in params if p.grad is not None]
@@ -659,8 +689,8 @@ def fit(
                 else:
                     norm = float(nn.utils.get_total_norm(grads)) if grads else 0.0
                 if not math.isfinite(norm):
-                    raise ValueError(f"loss_fn: non-finite gradient norm {where()} (the loss {value:.4g} is "
-                                     f"finite; the parameters are those before this step)")
+                    diverge(f"loss_fn: non-finite gradient norm {where()} (the loss {value:.4g} is "
+                            f"finite; the parameters are those before this step)")
                 opt.step()
                 n_steps += 1
                 size = len(idx) if idx is not None else 1
@@ -700,6 +730,8 @@ def fit(
                                  time.process_time() - cpu0, hist, lr, seed)
         if out_of_budget and hist.stopped == "epochs":
             hist.stopped = "budget"
+    except _Diverged as diverged:     # on_divergence="stop": the run ends at the last finite step
+        hist.stopped, hist.diverged = "diverged", str(diverged)
     except KeyboardInterrupt as interrupt:
         hist.stopped = "interrupted"
         if keep_best and best_state is not None:

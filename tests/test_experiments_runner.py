@@ -456,3 +456,35 @@ def test_final_lr_fraction_reads_the_rate_at_the_end_of_the_curve():
         final_lr_fraction({"curve": [{"valid": 1.0}]})
     _, info = train_model(_tiny_gru_experiment(), "gru", seed=0, budget_s=1e6, max_steps=4)
     assert final_lr_fraction(info) == 1.0                                 # no schedule in the tiny protocol
+
+
+def test_a_diverged_run_never_counts_as_converged_and_the_table_says_so():
+    """A run that fit ended at a non-finite value (``stopped == "diverged"``) has a flat curve
+    after its last finite step; the verdict must not read that as convergence."""
+    from pgm_wm.builders import build_baseline
+    from pgm_wm.experiments.results import training_table
+    from pgm_wm.experiments.runner import train_model
+    from pgm_wm.training import FitHistory
+
+    def own_train(model, splits, protocol, seed, budget_s, valid_fn, max_steps=None):
+        v = valid_fn()
+        curve = [{"step": s, "epoch": 0, "cpu_s": c, "wall_s": c, "valid": v, "train": 0.5}
+                 for s, c in ((10, 0.1), (20, 0.2), (30, 0.3))]
+        for _ in curve[1:]:
+            valid_fn()
+        return FitHistory(train_loss=[0.5], valid_loss=[v] * 3, curve=curve, stopped=stopped,
+                          diverged="loss_fn: failed at epoch 0: var: variances must be finite" if stopped == "diverged"
+                          else None)
+
+    spec = ModelSpec(lambda s: build_baseline("gru", 1, 1, hidden=8, predict_differences=False), train=own_train)
+    exp = Experiment("tiny", "tiny", lambda: SPLITS, {"own": spec}, PROTOCOL)
+    runs = []
+    for stopped in ("diverged", "budget"):
+        _, info = train_model(exp, "own", seed=0, budget_s=0.5)
+        assert info["improvement_last_doubling"] == 0.0 and info["stopped"] == stopped
+        assert info["converged"] is (stopped != "diverged") and ("diverged" in info) is (stopped == "diverged")
+        runs.append(info)
+    table = training_table({"models": {"own": {"trained": True, "runs": runs}}})
+    assert "| 1/2 (1 diverged) |" in table
+    table = training_table({"models": {"own": {"trained": True, "runs": runs[1:]}}})
+    assert "| 1/1 |" in table and "diverged" not in table

@@ -11,6 +11,7 @@ import sys
 import textwrap
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from torch import nn
@@ -89,6 +90,60 @@ def test_nan_gradient_without_clipping_is_an_error():
     with pytest.raises(ValueError, match="non-finite gradient norm at epoch 0, batch 0"):
         fit(loss, [w], (X, y), 8, epochs=1, clip_norm=None, progress=False)
     assert torch.equal(w.detach(), torch.ones(3, dtype=DT))
+
+
+def test_a_run_that_diverges_can_stop_and_keep_its_best_parameters():
+    """on_divergence="stop": a model output that turns non-finite after some steps ends the run
+    (stopped "diverged", the message kept) with the best validated parameters, instead of raising;
+    the default still raises, and so does a non-finite value at the very first step."""
+    from pgm_wm._checks import check_positive
+
+    X, y = _problem()
+
+    def run(on_divergence, blow_up_at):
+        w = torch.zeros(3, dtype=DT, requires_grad=True)
+        calls, seen = [0], []
+
+        def loss(b, g):
+            calls[0] += 1
+            var = torch.ones(1, dtype=DT) * (float("nan") if calls[0] > blow_up_at else 1.0)
+            check_positive("var", var)          # what a model's predicted variance goes through
+            return ((b[0] @ w - b[1]) ** 2).mean()
+
+        def valid():
+            seen.append(w.detach().clone())
+            return float(((X @ w.detach() - y) ** 2).mean())
+
+        hist = fit(loss, [w], (X, y), 8, lr=0.05, epochs=10, valid_every=4, valid_fn=valid, progress=False,
+                   on_divergence=on_divergence)
+        return w, hist, seen
+
+    w, hist, seen = run("stop", blow_up_at=30)
+    assert hist.stopped == "diverged" and "variances must be finite" in hist.diverged and "epoch 2" in hist.diverged
+    assert hist.curve[-1]["step"] == 28 and hist.best_step == 28      # 30 steps ran, validated every 4
+    best = int(np.argmin(hist.valid_loss))
+    assert torch.equal(w.detach(), seen[best]) and bool(torch.isfinite(w).all())
+    _, ok, _ = run("stop", blow_up_at=10**6)                           # nothing diverges: nothing changes
+    assert ok.stopped == "epochs" and ok.diverged is None and ok.steps[-1] == 120
+    with pytest.raises(ValueError, match=r"loss_fn: failed at epoch 2, batch 6 .*variances must be finite"):
+        run("raise", blow_up_at=30)
+    with pytest.raises(ValueError, match=r"loss_fn: failed at epoch 0, batch 0 .*variances must be finite"):
+        run("stop", blow_up_at=0)                                       # at step 0: bad input, raised
+    with pytest.raises(ValueError, match="^on_divergence"):
+        run("ignore", blow_up_at=30)
+
+    # a non-finite loss or gradient norm after the first step: the same stop
+    w = torch.ones(3, dtype=DT, requires_grad=True)
+    steps = [0]
+
+    def nan_grad_later(b, g):
+        steps[0] += 1
+        base = ((b[0] @ w - b[1]) ** 2).mean()
+        return base + (torch.sqrt(w - w.detach()).sum() if steps[0] > 5 else 0.0)
+
+    hist = fit(nan_grad_later, [w], (X, y), 8, epochs=3, clip_norm=None, progress=False, on_divergence="stop")
+    assert hist.stopped == "diverged" and "non-finite gradient norm" in hist.diverged and hist.curve == []
+    assert bool(torch.isfinite(w).all())
 
 
 def test_ctrl_c_restores_the_best_parameters_and_re_raises():

@@ -346,7 +346,9 @@ def check_study(results: Mapping[str, Any], min_seeds: int = 5) -> None:
 def training_table(results: Mapping[str, Any]) -> str:
     """Markdown: per trained model, the median over seeds of its optimizer steps, epochs and
     best validation RMSE, and how many seeds met the stopping rule (the best validation RMSE
-    improved by less than 2 % over the last doubling of the budget)."""
+    improved by less than 2 % over the last doubling of the budget) and how many diverged (their
+    training ended at a non-finite loss or output; they keep their best validated parameters and
+    never count as converged)."""
     from ..plotting import markdown_table
 
     rows = []
@@ -357,7 +359,8 @@ def training_table(results: Mapping[str, Any]) -> str:
         med = lambda key: float(np.median([float(r[key]) for r in runs]))  # noqa: E731
         impr = [float(r["improvement_last_doubling"]) for r in runs]
         rows.append([name, f"{med('steps'):.0f}", f"{med('epochs'):.0f}", f"{med('best_valid'):.4g}",
-                     f"{100 * float(np.median(impr)):.1f} %", f"{sum(bool(r['converged']) for r in runs)}/{len(runs)}"])
+                     f"{100 * float(np.median(impr)):.1f} %", f"{sum(bool(r['converged']) for r in runs)}/{len(runs)}"
+                     + (f" ({n_div} diverged)" if (n_div := sum("diverged" in r for r in runs)) else "")])
     return markdown_table(rows, ["model", "steps", "epochs", "valid RMSE (normalized)",
                                  "improvement, last doubling", "converged"])
 
@@ -475,7 +478,9 @@ def provenance_text(results: Mapping[str, Any]) -> str:
     commit = str(p.get("commit", "unknown"))[:10] + (" (uncommitted changes)" if p.get("dirty") else "")
     seeds = p.get("seeds", [])
     n_win = np.asarray(next(iter(results["models"].values()))["sq_err"]).shape[2]
-    return (f"Produced by `{p.get('command', '?')}` on {p.get('date', '?')} at commit {commit}, on "
+    parts = p.get("parts") or [p]      # a merged file (merge_results): every part's command and date
+    made = " and ".join(f"`{q.get('command', '?')}` on {q.get('date', '?')}" for q in parts)
+    return (f"Produced by {made}{' (merged)' if len(parts) > 1 else ''} at commit {commit}, on "
             f"{mach.get('cpu_count', '?')} CPUs ({mach.get('platform', '?')}, torch {mach.get('torch', '?')}, "
             f"{mach.get('torch_threads', '?')} thread(s)); {len(seeds)} seeds, a training budget of "
             f"{p.get('budget_cpu_s', '?')} CPU seconds per model, {n_win} test windows; the whole run took "

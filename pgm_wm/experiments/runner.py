@@ -355,7 +355,7 @@ def train_model(exp: Experiment, name: str, seed: int, budget_s: float,
         hist = fit(loss_fn, model, (obs, act, val), p.batch_size, lr=p.lr, seed=seed, valid_fn=tracker,
                    progress=False, crop_len=p.window, budget_s=budget_s, patience=p.patience, desc=name,
                    valid_every=p.valid_every, max_steps=max_steps, lr_patience=p.lr_patience,
-                   lr_min=p.lr_min)
+                   lr_min=p.lr_min, on_divergence="stop")
     if len(tracker.calls) != len(hist.curve):
         raise RuntimeError("train: the learning curve and fit's history disagree (a custom trainer must pass "
                            "valid_fn to fit)")
@@ -368,7 +368,9 @@ def train_model(exp: Experiment, name: str, seed: int, budget_s: float,
         "steps": hist.curve[-1]["step"] if hist.curve else 0, "epochs": hist.epochs,
         "best_valid": hist.best_valid_loss, "best_step": hist.best_step, "stopped": hist.stopped,
         "improvement_last_doubling": stat,
-        "converged": bool(stat < CONVERGENCE_TOL) if math.isfinite(stat) else False,
+        # a run that diverged ended early: its curve flattening is no evidence of convergence
+        "converged": bool(stat < CONVERGENCE_TOL) if math.isfinite(stat) and hist.stopped != "diverged" else False,
+        **({"diverged": hist.diverged} if hist.stopped == "diverged" else {}),
         "curve": _thin(curve)}
 
 
