@@ -173,3 +173,19 @@ def test_readme_chapter6_verdicts():
     readme = _readme_words()
     assert ("MTS3's fast level alone meets it in every seed (a stall at a payload-blind plateau), MTS3 in three seeds "
             "(one of them the same stall), the ac-RKN in two, the LSTM only in the two seeds that stalled") in readme
+
+
+def test_readme_real_arm_verdicts():
+    """The README's sentence on who meets the stopping rule in the real-arm study is read off the file."""
+    res = load_results(results_path("ch4_pam_arm"))
+    met = {n: sum(r["converged"] for r in e["runs"]) for n, e in res["models"].items() if e["trained"]}
+    assert met == {"ac-RKN (difference readout)": 4, "ac-RKN (absolute readout)": 5, "ac-RKN (hybrid readout)": 5,
+                   "ac-RKN, ‖A‖≤1": 3, "RKN (actions as obs.)": 4, "LSTM": 2, "GRU": 5, "FFNN": 5}, met
+    assert res["protocol"]["lr"] == 3e-3
+    assert not any("diverged" in r for e in res["models"].values() for r in e.get("runs", [])), "a run diverged"
+    readme = _readme_words()
+    assert ("33 of the 40 runs meet it: every seed of the GRU, the FFNN and the absolute and hybrid readouts, four of "
+            "the difference readout and of the RKN that reads actions as observations, three of the norm-bounded "
+            "ac-RKN and two of the LSTM") in readme
+    assert sum(met.values()) == 33 and sum(len(e["runs"]) for e in res["models"].values() if e["trained"]) == 40
+    assert "(no run of the real-arm study did)" in readme
