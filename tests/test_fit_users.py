@@ -123,8 +123,11 @@ def test_a_run_that_diverges_can_stop_and_keep_its_best_parameters():
     assert hist.curve[-1]["step"] == 28 and hist.best_step == 28      # 30 steps ran, validated every 4
     best = int(np.argmin(hist.valid_loss))
     assert torch.equal(w.detach(), seen[best]) and bool(torch.isfinite(w).all())
-    _, ok, _ = run("stop", blow_up_at=10**6)                           # nothing diverges: nothing changes
+    w_stop, ok, _ = run("stop", blow_up_at=10**6)                      # nothing diverges: nothing changes
+    w_raise, same, _ = run("raise", blow_up_at=10**6)
     assert ok.stopped == "epochs" and ok.diverged is None and ok.steps[-1] == 120
+    assert torch.equal(w_stop.detach(), w_raise.detach()) and ok.valid_loss == same.valid_loss
+    assert [c["train"] for c in ok.curve] == [c["train"] for c in same.curve]
     with pytest.raises(ValueError, match=r"loss_fn: failed at epoch 2, batch 6 .*variances must be finite"):
         run("raise", blow_up_at=30)
     with pytest.raises(ValueError, match=r"loss_fn: failed at epoch 0, batch 0 .*variances must be finite"):
