@@ -189,3 +189,23 @@ def test_readme_real_arm_verdicts():
             "ac-RKN and two of the LSTM") in readme
     assert sum(met.values()) == 33 and sum(len(e["runs"]) for e in res["models"].values() if e["trained"]) == 40
     assert "(no run of the real-arm study did)" in readme
+
+
+def test_readme_chapter4_simulated_verdicts():
+    """The README's sentence on the Chapter 4 simulated study is read off the file: only the FFNN meets
+    the stopping rule, in every seed and at the floor of its learning rate, and the range it gives for
+    how much every other model was still improving per doubling is the range in the file."""
+    import re
+
+    from pgm_wm.experiments.runner import final_lr_fraction
+
+    res = load_results(results_path("ch4_memory_arm"))
+    runs = {n: e["runs"] for n, e in res["models"].items() if e["trained"]}
+    assert all(r["converged"] for r in runs["FFNN"]), "an FFNN seed no longer meets the rule"
+    assert all(abs(final_lr_fraction(r) - res["protocol"]["lr_min_fraction"]) < 1e-9 for r in runs["FFNN"])
+    assert not any(r["converged"] for n, rs in runs.items() if n != "FFNN" for r in rs), "another model meets the rule"
+    impr = [r["improvement_last_doubling"] for n, rs in runs.items() if n != "FFNN" for r in rs]
+    found = re.search(r"only the FFNN meets the rule, at its floor, in every seed; every recurrent model was still "
+                      r"improving by (\d+) % to (\d+) % per doubling", _readme_words())
+    assert found, "the README no longer states the Chapter 4 verdicts"
+    assert (int(found[1]), int(found[2])) == (round(100 * min(impr)), round(100 * max(impr))), (found.groups(), impr)
