@@ -17,7 +17,7 @@ measurements (float32, one thread, CPU seconds of ``time.process_time``, after t
    second at the protocol's batch and at four times it. A model bound by dispatching small
    operations gains from the larger batch; one bound by arithmetic or memory traffic does not.
 
-    PYTHONPATH=$PWD OMP_NUM_THREADS=1 python benchmarks/bench_limits.py          # ~3 min
+    PYTHONPATH=$PWD OMP_NUM_THREADS=1 python benchmarks/bench_limits.py          # 1-2 min
     PYTHONPATH=$PWD OMP_NUM_THREADS=1 python benchmarks/bench_limits.py --no-save
 
 Writes ``results/throughput_limits.json`` with the commit, the machine's load average and the
@@ -40,14 +40,15 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_training import DEFAULT_BEFORE, _run_worker, _steps_for  # noqa: E402  (the throughput benchmark's step)
+from bench_training import DEFAULT_BEFORE, _run_worker, worker  # noqa: E402  (the throughput benchmark's step and timing)
 
 BATCH_MODELS = ("ch3/RKN", "ch6/GRU", "ch6/LSTM", "ch6/Transformer", "ch6/MTS3 (H = 25)",
                 "ch4/ac-RKN (difference readout)")
 
 
 def cpu_ms(fn, min_cpu: float = 2.0, min_calls: int = 5) -> float:
-    """CPU milliseconds per call of ``fn`` (at least ``min_cpu`` s and ``min_calls`` calls, after two warm-up calls)."""
+    """CPU milliseconds per call of ``fn`` (at least ``min_cpu`` s and ``min_calls`` calls, after two warm-up
+    calls), for the parts of a step that ``bench_training.worker`` cannot time on their own."""
     fn()
     fn()
     calls, t0 = 0, time.process_time()
@@ -59,12 +60,14 @@ def cpu_ms(fn, min_cpu: float = 2.0, min_calls: int = 5) -> float:
 
 def encoder_bound(min_cpu: float) -> dict:
     from pgm_wm.builders import build_image_encoder
+    from pgm_wm.datasets import load
 
-    batch, step = _steps_for("ch3/RKN", None)
-    step_ms = cpu_ms(step, min_cpu)
+    after = worker(["ch3/RKN"], min_cpu, None)["models"]["ch3/RKN"]   # timed as bench_training times it
+    batch, step_ms = after["batch"], after["ms_per_step"]
+    shape = tuple(load("pendulum", "train").meta["image_shape"])        # 24 x 24
     torch.manual_seed(0)
-    enc = build_image_encoder((24, 24), 8)
-    frames = torch.rand(batch, 32, 24 * 24)
+    enc = build_image_encoder(shape, 8)                                 # bench_training's RKN: latent 8, crops of 32
+    frames = torch.rand(batch, 32, shape[0] * shape[1])
 
     def fwd_bwd() -> None:
         w, v = enc(frames)
@@ -120,12 +123,10 @@ def filter_forward_backward(min_cpu: float) -> dict:
 def batch_scaling(models: tuple[str, ...], min_cpu: float) -> dict:
     out = {}
     for name in models:
-        row = {}
-        base, _ = _steps_for(name, None)
-        for batch in (base, 4 * base):
-            bs, step = _steps_for(name, batch)
-            ms = cpu_ms(step, min_cpu, 3)
-            row[str(bs)] = {"ms_per_step": ms, "seq_per_cpu_s": 1e3 * bs / ms}
+        runs = [worker([name], min_cpu, None)["models"][name]]           # the protocol's batch, then four times it
+        base = runs[0]["batch"]
+        runs.append(worker([name], min_cpu, 4 * base)["models"][name])
+        row = {str(r["batch"]): {"ms_per_step": r["ms_per_step"], "seq_per_cpu_s": r["seq_per_cpu_s"]} for r in runs}
         row["ratio_4x_batch"] = row[str(4 * base)]["seq_per_cpu_s"] / row[str(base)]["seq_per_cpu_s"]
         out[name] = row
         print(f"  {name:<40} batch {base}: {row[str(base)]['seq_per_cpu_s']:7.0f} seq/CPU-s, batch {4 * base}: "
